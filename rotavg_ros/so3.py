@@ -85,8 +85,7 @@ def project_to_so3(M: ArrayLike) -> FloatArray:
     """Nearest rotation (Frobenius) to each 3x3 matrix: SVD with a determinant fix."""
     M = np.asarray(M, dtype=np.float64)
     U, _, Vt = np.linalg.svd(M)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d[d == 0] = 1.0
+    d = np.where(np.linalg.det(U @ Vt) < 0, -1.0, 1.0)
     U = U.copy()
     U[..., :, 2] *= d[..., None]
     return U @ Vt

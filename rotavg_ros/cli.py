@@ -1,0 +1,157 @@
+"""Command line: ``rotavg solve | evaluate`` (``python -m rotavg_ros`` is the same).
+
+Output g2o files hold one ``VERTEX_SE3:QUAT id 0 0 0 qx qy qz qw`` per node with the
+**node-to-world** quaternion (g2o's vertex convention), i.e. the transpose of our
+world-to-node ``R_i``. For 1DSfM input, ids are the dataset's camera indices.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Hashable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from rotavg_ros.io_1dsfm import read_1dsfm_egs, read_1dsfm_npz, read_rotations_npz
+from rotavg_ros.io_g2o import read_g2o, read_g2o_vertices, write_g2o
+from rotavg_ros.metrics import evaluate
+from rotavg_ros.solver import RotationAverager
+from rotavg_ros.solver_types import SolverOptions
+from rotavg_ros.view_graph import ViewGraph
+
+
+class InputError(Exception):
+    """Unusable input; the message names the file (and line where known)."""
+
+
+def load_graph(path: Path, gt_only: bool = False) -> tuple[ViewGraph, dict[Hashable, np.ndarray]]:
+    """Read ``.g2o``, a 1DSfM ``.npz`` or ``EGs.txt``; returns the graph and any GT."""
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    name = path.name.lower()
+    try:
+        if name.endswith(".g2o"):
+            return read_g2o(path).graph, {}
+        if name.endswith(".npz"):
+            ds = read_1dsfm_npz(path, gt_only=gt_only)
+            return ds.graph, dict(ds.gt)
+        if name.endswith(".txt"):
+            ds = read_1dsfm_egs(path)
+            return ds.graph, dict(ds.gt)
+    except (ValueError, KeyError, OSError) as exc:
+        raise InputError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from exc
+    raise InputError(f"{path}: unknown input format (expected .g2o, .npz or EGs .txt)")
+
+
+def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
+    """Solver knobs shared by every command that solves."""
+    d = SolverOptions()
+    g = parser.add_argument_group("solver")
+    g.add_argument("--seed", type=int, default=d.seed)
+    g.add_argument("--depths", default=",".join(map(str, d.depths)),
+                   help="candidate depths, comma separated (default %(default)s)")
+    g.add_argument("--iterations", type=int, default=d.iterations)
+    g.add_argument("--lr", type=float, default=d.lr)
+    g.add_argument("--sigma", type=float, default=d.sigma,
+                   help="filter threshold on d_chord(R_ij, R_ij^tree) (default %(default)s)")
+    g.add_argument("--device", default=d.device, help="cpu, cuda or auto")
+    g.add_argument("--threads", type=int, default=None)
+    g.add_argument("--hidden-width", type=int, default=None)
+    g.add_argument("--no-filter", action="store_true", help="ablation (a)")
+    g.add_argument("--no-support-count", action="store_true", help="ablation (b)")
+    g.add_argument("--no-explicit-constraint", action="store_true", help="ablation (c)")
+    g.add_argument("--no-reweighting", action="store_true", help="ablation (d)")
+
+
+def options_from_args(args: argparse.Namespace) -> SolverOptions:
+    try:
+        depths = tuple(int(x) for x in str(args.depths).split(",") if x.strip())
+    except ValueError as exc:
+        raise InputError(f"--depths: expected comma-separated integers: {args.depths!r}") from exc
+    progress = None if getattr(args, "quiet", False) else _stderr
+    return SolverOptions(
+        depths=depths, iterations=args.iterations, lr=args.lr, sigma=args.sigma,
+        seed=args.seed, device=args.device, threads=args.threads,
+        hidden_width=args.hidden_width, use_filter=not args.no_filter,
+        use_support_count=not args.no_support_count,
+        explicit_constraint=not args.no_explicit_constraint,
+        reweighting=not args.no_reweighting, progress=progress,
+    )
+
+
+def _stderr(text: str) -> None:
+    print(f"[rotavg] {text}", file=sys.stderr, flush=True)
+
+
+def cmd_solve(args: argparse.Namespace) -> int:
+    graph, _ = load_graph(Path(args.input), gt_only=args.gt_only)
+    if graph.num_nodes == 0:
+        raise InputError(f"{args.input}: no edges")
+    options = options_from_args(args)
+    t0 = time.perf_counter()
+    result = RotationAverager(options).solve(graph)
+    wall = time.perf_counter() - t0
+    write_g2o(args.output, result.node_ids, result.rotations)
+    ncomp = int(result.component.max()) + 1 if result.component.size else 0
+    if not args.quiet:
+        inl = result.residuals_deg[result.edge_inlier]
+        print(f"solved {graph.num_nodes} nodes, {graph.edge_arrays().num_edges} edges in "
+              f"{wall:.2f} s: depth {result.depth}, {result.num_filtered} edges filtered, "
+              f"{ncomp} component(s), inlier residual median "
+              f"{np.median(inl) if inl.size else float('nan'):.3f} deg -> {args.output}")
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    ids, rots = read_g2o_vertices(args.estimate)
+    est = {k: r for k, r in zip(ids, rots)}
+    gt_path = Path(args.ground_truth)
+    if gt_path.suffix == ".npz":
+        with np.load(gt_path) as data:
+            is_dataset = "edges" in data.files
+        gt = (dict(read_1dsfm_npz(gt_path, gt_only=True).gt) if is_dataset
+              else dict(read_rotations_npz(gt_path)))
+    else:
+        raise InputError(f"{gt_path}: ground truth must be a 1DSfM .npz or a reference .npz")
+    stats = evaluate(est, gt)
+    print(f"nodes {stats.num_nodes}  mean {stats.mean_deg:.3f} deg  "
+          f"median {stats.median_deg:.3f} deg  max {stats.max_deg:.3f} deg")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rotavg", description="Filtered-DMF rotation averaging")
+    sub = p.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("solve", help="solve a .g2o / 1DSfM .npz / EGs.txt graph")
+    s.add_argument("input")
+    s.add_argument("--output", "-o", required=True, help="output .g2o (node-to-world quats)")
+    s.add_argument("--gt-only", action="store_true",
+                   help="1DSfM .npz: keep only cameras with ground truth (paper protocol)")
+    s.add_argument("--quiet", "-q", action="store_true")
+    add_solver_arguments(s)
+    s.set_defaults(func=cmd_solve)
+    e = sub.add_parser("evaluate", help="gauge-align an estimate and print its errors")
+    e.add_argument("estimate", help=".g2o written by 'rotavg solve'")
+    e.add_argument("ground_truth", help="1DSfM .npz with R_gt, or a .npz with R_ref / R_gt")
+    e.set_defaults(func=cmd_evaluate)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except InputError as exc:
+        print(f"rotavg: error: {exc}", file=sys.stderr)
+        return 2
+    except (ValueError, OSError) as exc:
+        print(f"rotavg: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

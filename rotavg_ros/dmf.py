@@ -1,0 +1,244 @@
+"""Deep matrix factorization of the observed rotation blocks (Sec. IV-B to IV-D).
+
+Symmetric, explicitly rank-3 model (the paper's design)::
+
+    G_hat = H H^T,   H = W_1 W_2 ... W_{d/2},   W_{d/2} in R^{h x 3}, W_1 in R^{3N x h}
+
+with hidden width ``h`` (the paper uses h = 3N). The 3x3 block ``H_i`` (rows 3i..3i+2)
+estimates ``R_i Q`` for one unknown ``Q`` in O(3): world-to-node rotations up to gauge.
+
+Loss (Sec. IV-D), evaluated per observed block in O(|E|), never forming G_hat::
+
+    L = sum_{(i,j) in E} w_ij |H_i H_j^T - R_ij|_1  +  sum_i w_d |H_i H_i^T - I|_1
+
+Reweighting (Sec. IV-C): every ``reweight_every`` iterations after ``warmup``, with
+``r_ij = ||H_i H_j^T - R_ij||_F`` and ``tau = median(r)``: ``w_ij *= tau / r_ij`` where
+``r_ij > tau``.
+
+``VanillaDMF`` is ablation (c): G_hat = W_1 ... W_d with every W in R^{3N x 3N} (no
+symmetry, no bottleneck), the loss on the same blocks, and rotations recovered afterwards
+from the top-3 eigenvectors of the symmetrised G_hat.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass
+class DMFSettings:
+    """Optimisation settings of one DMF fit."""
+
+    depth: int
+    hidden_width: int
+    iterations: int = 3000
+    lr: float = 0.01
+    lr_final_ratio: float = 0.01
+    reweighting: bool = True
+    reweight_every: int = 100
+    warmup: int = 500
+    init_scale: float = 1e-2
+    diagonal_weight: float = 1.0
+    seed: int = 0
+    device: str = "cpu"
+
+
+@dataclass
+class DMFFit:
+    """Result of one fit: the stacked factor product and the final edge weights."""
+
+    H: FloatArray  # (N, 3, 3) blocks H_i ~= R_i Q
+    weights: FloatArray  # (E,) final reweighted edge weights
+    loss: float
+
+
+def _init_factors(
+    shapes: list[tuple[int, int]], scale: float, gen: torch.Generator, device: str
+) -> list[torch.Tensor]:
+    """Near-zero Gaussian factors; each scaled so the product's entries are about ``scale``."""
+    k = len(shapes)
+    per = scale ** (1.0 / k)
+    factors = []
+    for rows, cols in shapes:
+        std = per / math.sqrt(cols) if k > 1 else scale
+        w = torch.randn(rows, cols, generator=gen, dtype=torch.float64) * std
+        factors.append(w.to(device).requires_grad_(True))
+    return factors
+
+
+def _product(factors: list[torch.Tensor]) -> torch.Tensor:
+    """W_1 (W_2 (... W_k)): right to left so every product is thin (x 3 columns)."""
+    out = factors[-1]
+    for w in reversed(factors[:-1]):
+        out = w @ out
+    return out
+
+
+def _lr_at(step: int, s: DMFSettings) -> float:
+    """Cosine decay from lr to lr * lr_final_ratio."""
+    t = step / max(1, s.iterations - 1)
+    lo = s.lr * s.lr_final_ratio
+    return lo + 0.5 * (s.lr - lo) * (1.0 + math.cos(math.pi * t))
+
+
+class EdgeBlocks:
+    """Observed blocks in a structure-of-arrays layout, for O(|E|) products.
+
+    Blocks are held as ``(3, 3, E)`` tensors so the 3x3 products of every edge are a few
+    vectorised multiply-adds over E (several times faster on CPU than ``bmm`` on
+    ``(E, 3, 3)``, which loops over tiny matrices).
+    """
+
+    def __init__(self, num_nodes: int, i: IntArray, j: IntArray, device: str) -> None:
+        self.num_nodes = num_nodes
+        self.num_edges = int(i.shape[0])
+        self.ti = torch.as_tensor(i, dtype=torch.int64, device=device)
+        self.tj = torch.as_tensor(j, dtype=torch.int64, device=device)
+
+    def products(self, H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(H_i, H_j, H_i H_j^T)`` for every edge as (3, 3, E); ``H`` is (N, 3, 3)."""
+        HT = H.reshape(self.num_nodes, 9).T.contiguous()
+        Hi = HT.index_select(1, self.ti).view(3, 3, self.num_edges)
+        Hj = HT.index_select(1, self.tj).view(3, 3, self.num_edges)
+        return Hi, Hj, soa_matmul(Hi, Hj, transpose_b=True)
+
+    def node_gradient(
+        self, G: torch.Tensor, Hi: torch.Tensor, Hj: torch.Tensor
+    ) -> torch.Tensor:
+        """d/dH of sum_e <G_e, H_i H_j^T>: G_e H_j onto node i, G_e^T H_i onto node j."""
+        out = torch.zeros(9, self.num_nodes, dtype=G.dtype, device=G.device)
+        out.index_add_(1, self.ti, soa_matmul(G, Hj).view(9, self.num_edges))
+        out.index_add_(1, self.tj, soa_matmul(G, Hi, transpose_a=True).view(9, self.num_edges))
+        return out.T.reshape(self.num_nodes, 3, 3)
+
+
+def soa_matmul(
+    A: torch.Tensor, B: torch.Tensor, transpose_a: bool = False, transpose_b: bool = False
+) -> torch.Tensor:
+    """Batched 3x3 product on (3, 3, E) tensors: op(A) op(B) with op = optional transpose."""
+    a = A.transpose(0, 1) if transpose_a else A
+    b = B.transpose(0, 1) if transpose_b else B
+    out = a[:, None, 0] * b[None, 0, :]
+    out.addcmul_(a[:, None, 1], b[None, 1, :])
+    out.addcmul_(a[:, None, 2], b[None, 2, :])
+    return out
+
+
+def fit_symmetric(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, s: DMFSettings,
+    progress: Callable[[int, float], None] | None = None,
+) -> DMFFit:
+    """Fit H H^T to the observed blocks; returns H's blocks and the final weights.
+
+    The L1 loss gradient with respect to H is formed by hand (sign of the block residual,
+    scattered onto both end nodes), then back-propagated through the factor product.
+    """
+    dev = s.device
+    gen = torch.Generator().manual_seed(s.seed)
+    n3 = 3 * num_nodes
+    k = s.depth // 2
+    h = s.hidden_width
+    shapes = [(n3, 3)] if k == 1 else [(n3, h)] + [(h, h)] * (k - 2) + [(h, 3)]
+    factors = _init_factors(shapes, s.init_scale, gen, dev)
+    blocks = EdgeBlocks(num_nodes, i, j, dev)
+    tR = torch.as_tensor(R, dtype=torch.float64, device=dev).permute(1, 2, 0).contiguous()
+    weights = torch.as_tensor(w, dtype=torch.float64, device=dev).clone()
+    eye = torch.eye(3, dtype=torch.float64, device=dev)
+    opt = torch.optim.Adam(factors, lr=s.lr, fused=dev == "cpu" or None)
+    loss_val = float("nan")
+    for step in range(s.iterations):
+        for group in opt.param_groups:
+            group["lr"] = _lr_at(step, s)
+        H = _product(factors).view(num_nodes, 3, 3)
+        Hd = H.detach()
+        Hi, Hj, P = blocks.products(Hd)
+        D = P.sub_(tR)
+        Dd = torch.bmm(Hd, Hd.transpose(1, 2)) - eye
+        last = step + 1 == s.iterations
+        if last or (progress is not None and (step + 1) % 250 == 0):
+            loss_val = float((weights * D.abs().sum(dim=(0, 1))).sum()
+                             + s.diagonal_weight * Dd.abs().sum())
+            if progress is not None:
+                progress(step + 1, loss_val)
+        G = torch.sign(D).mul_(weights)
+        grad_H = blocks.node_gradient(G, Hi, Hj)
+        grad_H += 2.0 * s.diagonal_weight * torch.bmm(torch.sign(Dd), Hd)
+        opt.zero_grad(set_to_none=True)
+        H.backward(grad_H)
+        opt.step()
+        if (s.reweighting and step + 1 > s.warmup
+                and (step + 1 - s.warmup) % s.reweight_every == 0):
+            r = D.pow(2).sum(dim=(0, 1)).sqrt()
+            tau = torch.median(r)
+            weights *= torch.where(r > tau, tau / r.clamp_min(1e-12), torch.ones_like(r))
+    with torch.no_grad():
+        H = _product(factors).view(num_nodes, 3, 3)
+    return DMFFit(H.detach().cpu().numpy(), weights.cpu().numpy(), loss_val)
+
+
+def fit_vanilla(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, s: DMFSettings,
+    progress: Callable[[int, float], None] | None = None,
+) -> DMFFit:
+    """Ablation (c): G_hat = W_1 ... W_d, all 3N x 3N, then top-3 eigenvectors.
+
+    Both (i, j) and (j, i) blocks and the identity diagonal are fitted, since G_hat is not
+    symmetric by construction. Materialises G_hat (3N x 3N): only for the ablation.
+    """
+    dev = s.device
+    gen = torch.Generator().manual_seed(s.seed)
+    n3 = 3 * num_nodes
+    factors = _init_factors([(n3, n3)] * s.depth, s.init_scale, gen, dev)
+    nodes = torch.arange(num_nodes, device=dev)
+    ti = torch.cat([torch.as_tensor(i, device=dev), torch.as_tensor(j, device=dev), nodes])
+    tj = torch.cat([torch.as_tensor(j, device=dev), torch.as_tensor(i, device=dev), nodes])
+    tR0 = torch.as_tensor(R, dtype=torch.float64, device=dev)
+    eye = torch.eye(3, dtype=torch.float64, device=dev).expand(num_nodes, 3, 3)
+    tR = torch.cat([tR0, tR0.transpose(1, 2), eye])
+    e = int(i.shape[0])
+    w_edges = torch.as_tensor(w, dtype=torch.float64, device=dev).clone()
+    opt = torch.optim.Adam(factors, lr=s.lr, fused=True)
+    loss_val = float("nan")
+    for step in range(s.iterations):
+        for group in opt.param_groups:
+            group["lr"] = _lr_at(step, s)
+        G = _chain(factors).view(num_nodes, 3, num_nodes, 3)
+        P = G[ti, :, tj, :]
+        D = P - tR
+        weights = torch.cat([w_edges, w_edges, torch.full((num_nodes,), s.diagonal_weight,
+                                                          dtype=torch.float64, device=dev)])
+        loss = (weights * D.abs().sum(dim=(1, 2))).sum()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        loss_val = float(loss.detach())
+        if (s.reweighting and step + 1 > s.warmup
+                and (step + 1 - s.warmup) % s.reweight_every == 0):
+            with torch.no_grad():
+                r = D[:e].pow(2).sum(dim=(1, 2)).sqrt() + D[e:2 * e].pow(2).sum(dim=(1, 2)).sqrt()
+                tau = torch.median(r)
+                w_edges *= torch.where(r > tau, tau / r.clamp_min(1e-12), torch.ones_like(r))
+        if progress is not None and (step + 1) % 250 == 0:
+            progress(step + 1, loss_val)
+    with torch.no_grad():
+        G = _chain(factors)
+        G = 0.5 * (G + G.T)
+        evals, evecs = torch.linalg.eigh(G)
+        top = evecs[:, -3:] * evals[-3:].clamp_min(0).sqrt()
+    return DMFFit(top.view(num_nodes, 3, 3).cpu().numpy(), w_edges.cpu().numpy(), loss_val)
+
+
+def _chain(factors: list[torch.Tensor]) -> torch.Tensor:
+    out = factors[0]
+    for w in factors[1:]:
+        out = out @ w
+    return out

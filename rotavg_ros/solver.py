@@ -1,0 +1,250 @@
+"""Filtered-DMF rotation averager: edge filter, DMF per candidate depth, projection.
+
+One estimator, one options struct (:class:`~rotavg_ros.solver_types.SolverOptions`).
+Input is a :class:`~rotavg_ros.view_graph.ViewGraph` (or plain arrays through
+:func:`average_rotations`). Conventions: ``R_i`` world-to-node, edges ``R_ij ~= R_i R_j^T``;
+the output gives every connected component its own gauge, with its anchor at identity.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Hashable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from rotavg_ros.dmf import DMFFit, DMFSettings, fit_symmetric, fit_vanilla
+from rotavg_ros.edge_filter import filter_edges
+from rotavg_ros.so3 import geodesic_distance, project_to_so3
+from rotavg_ros.solver_types import SolveResult, SolverOptions
+from rotavg_ros.view_graph import ViewGraph
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass
+class ComponentSolution:
+    """Rotations of one connected component in local indexing (anchor = identity)."""
+
+    rotations: FloatArray
+    kept: BoolArray
+    depth: int
+    cost_by_depth: dict[int, float]
+
+
+def rotations_from_factor(H: FloatArray) -> FloatArray:
+    """Project H's 3x3 blocks onto SO(3), resolving the reflection in H -> H Q.
+
+    ``H_i ~= R_i Q`` with Q in O(3). If most blocks have det < 0, Q is a reflection: flip
+    the sign of H's last column (H diag(1, 1, -1) gives the same H H^T) before projecting.
+    """
+    dets = np.linalg.det(H)
+    if np.count_nonzero(dets < 0) > dets.size / 2:
+        H = H * np.array([1.0, 1.0, -1.0])
+    return project_to_so3(H)
+
+
+def observation_cost(
+    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
+) -> float:
+    """Eq. 3 with p = 1: sum_ij w_ij d(R_ij, R_i R_j^T), in radians."""
+    pred = np.einsum("eab,ecb->eac", rot[i], rot[j])
+    return float(np.sum(w * geodesic_distance(R, pred)))
+
+
+def resolve_device(name: str) -> str:
+    """``auto`` picks CUDA when available; an unavailable CUDA request raises."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError(f"device {name!r} requested but CUDA is not available")
+    return name
+
+
+class RotationAverager:
+    """The paper's pipeline: filter -> DMF at each candidate depth -> pick -> project."""
+
+    def __init__(self, options: SolverOptions | None = None) -> None:
+        self.options = options or SolverOptions()
+        for d in self.options.depths:
+            if d < 2 or d % 2:
+                raise ValueError(f"depths must be even and >= 2, got {d}")
+
+    # ------------------------------------------------------------------ public
+    def solve(self, graph: ViewGraph, anchor: Hashable | None = None) -> SolveResult:
+        """Solve every connected component of ``graph``.
+
+        ``anchor`` (a node id; default: the first node added) gets identity; each other
+        component is anchored at its first-added node. Component label 0 is the anchor's.
+        """
+        edges = graph.edge_arrays()
+        ids = graph.node_ids
+        anchor_idx = graph.index_of(anchor) if anchor is not None and graph.has_node(
+            anchor) else 0
+        result = average_rotations(
+            graph.num_nodes, edges.i, edges.j, edges.R, edges.weight, self.options,
+            anchor=anchor_idx,
+        )
+        rotations, component, comp_anchor, depth, kept, costs, duration = result
+        residuals = _residuals_deg(rotations, edges.i, edges.j, edges.R)
+        return SolveResult(
+            node_ids=ids,
+            rotations=rotations,
+            component=component,
+            anchors=[ids[a] for a in comp_anchor],
+            depth=depth,
+            residuals_deg=residuals,
+            edge_inlier=kept,
+            num_filtered=int((~kept).sum()),
+            cost_by_depth=costs,
+            duration_s=duration,
+        )
+
+    def solve_component(
+        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
+    ) -> ComponentSolution:
+        """Solve one connected graph in local indices; node 0 is the anchor."""
+        opt = self.options
+        w = w / np.mean(w)
+        if opt.use_filter:
+            filt = filter_edges(i, j, R, w, n, opt.sigma, opt.use_support_count)
+            kept = filt.kept
+            self._say(f"filter: {filt.num_triangles} triangles, removed "
+                      f"{filt.num_removed}/{i.size} edges")
+        else:
+            kept = np.ones(i.size, bool)
+        fi, fj, fR, fw = i[kept], j[kept], R[kept], w[kept]
+        fits = self._fit_depths(n, fi, fj, fR, fw)
+        costs: dict[int, float] = {}
+        rots: dict[int, FloatArray] = {}
+        for depth, fit in fits.items():
+            rot = rotations_from_factor(fit.H)
+            if not np.all(np.isfinite(rot)):
+                continue
+            rots[depth] = rot
+            costs[depth] = observation_cost(rot, fi, fj, fR, fw)
+        if not costs:
+            raise FloatingPointError("every DMF candidate diverged (non-finite factors)")
+        best = min(costs, key=lambda d: costs[d])
+        rot = rots[best]
+        rot = np.einsum("nab,cb->nac", rot, rot[0])  # gauge: R_i R_0^T, anchor -> I
+        return ComponentSolution(project_to_so3(rot), kept, best, costs)
+
+    # ----------------------------------------------------------------- private
+    def _fit_depths(
+        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
+    ) -> dict[int, DMFFit]:
+        opt = self.options
+        device = resolve_device(opt.device)
+        width = opt.hidden_width or (3 * n if n <= opt.max_full_width_nodes else 3 * min(
+            n, opt.max_full_width_nodes))
+        fit = fit_symmetric if opt.explicit_constraint else fit_vanilla
+        depths = list(dict.fromkeys(opt.depths))
+        threads = opt.threads or torch.get_num_threads()
+        workers = 1 if device != "cpu" else max(1, min(len(depths), threads))
+
+        def run(depth: int) -> DMFFit:
+            s = DMFSettings(
+                depth=depth, hidden_width=width, iterations=opt.iterations, lr=opt.lr,
+                reweighting=opt.reweighting, reweight_every=opt.reweight_every,
+                warmup=opt.warmup, init_scale=opt.init_scale, seed=opt.seed + depth,
+                device=device,
+            )
+            self._say(f"depth {depth}: fitting {n} nodes, {i.size} edges")
+
+            def report(step: int, loss: float) -> None:
+                self._say(f"depth {depth}: iteration {step}/{opt.iterations}, loss {loss:.4g}")
+
+            return fit(n, i, j, R, w, s, report)
+
+        if workers == 1:
+            return {d: run(d) for d in depths}
+        previous = torch.get_num_threads()
+        torch.set_num_threads(max(1, threads // workers))
+        try:
+            # Largest depth first so the slow candidates start early.
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                futures = {d: pool.submit(run, d) for d in sorted(depths, reverse=True)}
+                return {d: futures[d].result() for d in depths}
+        finally:
+            torch.set_num_threads(previous)
+
+    def _say(self, text: str) -> None:
+        if self.options.progress is not None:
+            self.options.progress(text)
+
+
+def average_rotations(
+    num_nodes: int,
+    i: IntArray,
+    j: IntArray,
+    R: FloatArray,
+    weight: FloatArray,
+    options: SolverOptions | None = None,
+    anchor: int = 0,
+) -> tuple[FloatArray, IntArray, list[int], int, BoolArray, dict[int, float], float]:
+    """Array interface: solve each component; see :meth:`RotationAverager.solve`.
+
+    Returns ``(rotations, component, component_anchor, depth, kept, cost_by_depth,
+    duration_s)`` where ``depth``/``cost_by_depth`` belong to the largest component.
+    """
+    t0 = time.perf_counter()
+    averager = RotationAverager(options)
+    i = np.asarray(i, np.int64)
+    j = np.asarray(j, np.int64)
+    if i.size and (np.any(i == j) or min(i.min(), j.min()) < 0
+                   or max(i.max(), j.max()) >= num_nodes):
+        raise ValueError("edge indices must be distinct and in [0, num_nodes)")
+    labels = _component_labels(num_nodes, i, j, anchor)
+    rotations = np.tile(np.eye(3), (num_nodes, 1, 1))
+    kept = np.ones(i.size, bool)
+    comp_anchor: list[int] = []
+    depth, costs, best_size = 0, {}, 0
+    for label in range(int(labels.max()) + 1 if num_nodes else 0):
+        nodes = np.flatnonzero(labels == label)
+        if label == 0 and anchor in nodes:
+            nodes = np.concatenate([[anchor], nodes[nodes != anchor]])
+        comp_anchor.append(int(nodes[0]))
+        if nodes.size < 2:
+            continue
+        local = np.full(num_nodes, -1, np.int64)
+        local[nodes] = np.arange(nodes.size)
+        sel = np.flatnonzero(labels[i] == label)
+        li, lj, lR = local[i[sel]], local[j[sel]], R[sel]
+        swap = li > lj
+        li, lj = np.where(swap, lj, li), np.where(swap, li, lj)
+        lR = np.where(swap[:, None, None], lR.transpose(0, 2, 1), lR)
+        sol = averager.solve_component(nodes.size, li, lj, lR, weight[sel])
+        rotations[nodes] = sol.rotations
+        kept[sel] = sol.kept
+        if nodes.size > best_size:
+            depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
+    return rotations, labels, comp_anchor, depth, kept, costs, time.perf_counter() - t0
+
+
+def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:
+    """Labels with the anchor's component 0, then by decreasing size."""
+    if num_nodes == 0:
+        return np.zeros(0, np.int64)
+    adj = coo_matrix((np.ones(i.size), (i, j)), shape=(num_nodes, num_nodes))
+    _, raw = connected_components(adj, directed=False)
+    sizes = np.bincount(raw)
+    order = sorted(range(sizes.size), key=lambda c: (c != raw[anchor], -sizes[c], c))
+    relabel = np.empty(sizes.size, np.int64)
+    relabel[order] = np.arange(sizes.size)
+    return relabel[raw]
+
+
+def _residuals_deg(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray) -> FloatArray:
+    if i.size == 0:
+        return np.zeros(0)
+    pred = np.einsum("eab,ecb->eac", rot[i], rot[j])
+    return np.degrees(geodesic_distance(R, pred))

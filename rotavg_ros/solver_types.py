@@ -1,0 +1,84 @@
+"""Options and result types of the rotation averager (no solver logic here).
+
+Conventions: rotations are world-to-node (``x_node = R_i x_world``); edges carry
+``R_ij ~= R_i R_j^T``. The anchor node of each connected component gets identity.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+ProgressFn = Callable[[str], None]
+
+
+@dataclass
+class SolverOptions:
+    """Every knob of the filtered-DMF pipeline; defaults are the measured choices."""
+
+    depths: tuple[int, ...] = (2, 4, 6, 8)
+    """Candidate depths d (even); H has d/2 factors. The best by the Eq. 3 cost wins."""
+    use_filter: bool = True
+    """Spanning-tree edge filtering (ablation (a) turns it off)."""
+    use_support_count: bool = True
+    """Order tree edges by support count first (ablation (b): mean error only)."""
+    explicit_constraint: bool = True
+    """Rank-3 symmetric H H^T (ablation (c): vanilla 3N x 3N factors + eigendecomposition)."""
+    reweighting: bool = True
+    """IRLS-style reweighting of Sec. IV-C (ablation (d) turns it off)."""
+    sigma: float = 0.2
+    """Filter threshold on d_chord(R_ij, R_ij^tree)."""
+    iterations: int = 1000
+    lr: float = 0.01
+    reweight_every: int = 25
+    """lambda: reweight every this many iterations ..."""
+    warmup: int = 200
+    """lambda_warm: ... after this many warm-up iterations."""
+    init_scale: float = 1e-2
+    hidden_width: int | None = None
+    """Width of the hidden factors; None = 3N (the paper) up to ``max_full_width_nodes``."""
+    max_full_width_nodes: int = 1000
+    seed: int = 0
+    device: str = "cpu"
+    threads: int | None = None
+    progress: ProgressFn | None = field(default=None, repr=False, compare=False)
+
+
+@dataclass
+class FilterReport:
+    """What the spanning-tree filter did."""
+
+    num_edges: int
+    num_triangles: int
+    epsilon: float
+    num_removed: int
+    num_untested: int
+    kept: NDArray[np.bool_]
+
+
+@dataclass
+class SolveResult:
+    """Absolute rotations for every node of the graph that was solved."""
+
+    node_ids: list[Hashable]
+    rotations: FloatArray
+    """(N, 3, 3) world-to-node rotations; each component's anchor is identity."""
+    component: IntArray
+    """(N,) component label; 0 is the anchor's component."""
+    anchors: list[Hashable]
+    """Anchor node id of each component, by label."""
+    depth: int
+    """Depth chosen for the largest component (0 when nothing was optimized)."""
+    residuals_deg: FloatArray
+    """(E,) angular residual of every consolidated input edge against the solution."""
+    edge_inlier: NDArray[np.bool_]
+    """(E,) False for edges removed by the filter."""
+    num_filtered: int
+    cost_by_depth: dict[int, float]
+    duration_s: float

@@ -1,0 +1,33 @@
+"""ament_python setup for rotavg_ros (also a plain pip-installable package)."""
+
+from glob import glob
+
+from setuptools import setup
+
+PACKAGE = "rotavg_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=[PACKAGE, "msg_adapters"],
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
+    ],
+    install_requires=["numpy", "scipy", "torch", "rosbags", "mcap"],
+    extras_require={"bench": ["pycolmap", "gtsam", "matplotlib"]},
+    zip_safe=True,
+    maintainer="rotavg_ros maintainers",
+    maintainer_email="rotavg@example.com",
+    description="Filtered-DMF multiple rotation averaging for ROS 2 Jazzy",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    entry_points={
+        "console_scripts": [
+            "rotavg = rotavg_ros.cli:main",
+            "rotavg_node = rotavg_ros.node:main",
+        ],
+    },
+)
