@@ -107,7 +107,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     ids, rots = read_g2o_vertices(args.estimate)
-    est = {k: r for k, r in zip(ids, rots)}
+    est = {k: r for k, r in zip(ids, rots, strict=True)}
     gt_path = Path(args.ground_truth)
     if gt_path.suffix == ".npz":
         with np.load(gt_path) as data:

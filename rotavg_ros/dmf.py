@@ -48,6 +48,8 @@ class DMFSettings:
     warmup: int = 500
     init_scale: float = 1e-2
     diagonal_weight: float = 1.0
+    huber_delta: float = 0.0
+    """0 = the paper's entry-wise L1. > 0: entry-wise Huber (quadratic below delta)."""
     seed: int = 0
     device: str = "cpu"
 
@@ -71,6 +73,30 @@ def _init_factors(
     for rows, cols in shapes:
         std = per / math.sqrt(cols) if k > 1 else scale
         w = torch.randn(rows, cols, generator=gen, dtype=torch.float64) * std
+        factors.append(w.to(device).requires_grad_(True))
+    return factors
+
+
+def _warm_factors(
+    H0: FloatArray, shapes: list[tuple[int, int]], noise: float, gen: torch.Generator,
+    device: str,
+) -> list[torch.Tensor]:
+    """Factors whose product is exactly ``H0`` (3N x 3).
+
+    ``W_1 = [H0 | e]``, middle factors ``I``, ``W_k = [I_3; 0]``: the hidden directions
+    beyond the first three start at small noise ``e`` (near zero, as in the paper) and get
+    non-zero gradients, while the product starts at ``H0``.
+    """
+    H0t = torch.as_tensor(H0, dtype=torch.float64).reshape(-1, 3)
+    if len(shapes) == 1:
+        return [H0t.clone().to(device).requires_grad_(True)]
+    factors = []
+    for idx, (rows, cols) in enumerate(shapes):
+        if idx == 0:
+            w = torch.randn(rows, cols, generator=gen, dtype=torch.float64) * noise
+            w[:, :3] = H0t
+        else:
+            w = torch.eye(rows, cols, dtype=torch.float64)
         factors.append(w.to(device).requires_grad_(True))
     return factors
 
@@ -136,8 +162,12 @@ def soa_matmul(
 def fit_symmetric(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, s: DMFSettings,
     progress: Callable[[int, float], None] | None = None,
+    H0: FloatArray | None = None,
 ) -> DMFFit:
     """Fit H H^T to the observed blocks; returns H's blocks and the final weights.
+
+    ``H0`` (N, 3, 3), when given, is a warm start: the factors start with product ``H0``
+    instead of near zero (used on sparse graphs and for incremental re-solves).
 
     The L1 loss gradient with respect to H is formed by hand (sign of the block residual,
     scattered onto both end nodes), then back-propagated through the factor product.
@@ -148,7 +178,10 @@ def fit_symmetric(
     k = s.depth // 2
     h = s.hidden_width
     shapes = [(n3, 3)] if k == 1 else [(n3, h)] + [(h, h)] * (k - 2) + [(h, 3)]
-    factors = _init_factors(shapes, s.init_scale, gen, dev)
+    if H0 is None:
+        factors = _init_factors(shapes, s.init_scale, gen, dev)
+    else:
+        factors = _warm_factors(H0, shapes, s.init_scale, gen, dev)
     blocks = EdgeBlocks(num_nodes, i, j, dev)
     tR = torch.as_tensor(R, dtype=torch.float64, device=dev).permute(1, 2, 0).contiguous()
     weights = torch.as_tensor(w, dtype=torch.float64, device=dev).clone()
@@ -169,7 +202,10 @@ def fit_symmetric(
                              + s.diagonal_weight * Dd.abs().sum())
             if progress is not None:
                 progress(step + 1, loss_val)
-        G = torch.sign(D).mul_(weights)
+        if s.huber_delta > 0:
+            G = (D / s.huber_delta).clamp_(-1.0, 1.0).mul_(weights)
+        else:
+            G = torch.sign(D).mul_(weights)
         grad_H = blocks.node_gradient(G, Hi, Hj)
         grad_H += 2.0 * s.diagonal_weight * torch.bmm(torch.sign(Dd), Hd)
         opt.zero_grad(set_to_none=True)

@@ -8,7 +8,9 @@ Conventions
   ``child_frame_id = j`` whose rotation is frame ``j``'s orientation in frame ``i`` (the TF
   convention) *is* ``R_ij``. ``nav_msgs/msg/Odometry`` is read the same way
   (``pose.pose.orientation``), its rotation covariance sets the edge weight. Translations are
-  ignored. See :mod:`msg_adapters.inputs` for validation and the weight mapping.
+  ignored. See :mod:`msg_adapters.inputs` for validation and the weight mapping; an edge that
+  names ``world_frame`` itself is rejected (``reserved_frame_id``): it would publish
+  ``world_frame -> world_frame``.
 * Output: node-to-world ``R_i^T`` as ``TransformStamped`` with
   ``header.frame_id = world_frame`` and ``child_frame_id = i`` (tf2-ready; zero translation).
 
@@ -35,7 +37,19 @@ most one extra solve behind the running one (concurrent requests share it), so i
 reflects every edge accepted before the request.
 
 Every output of a solve (orientations, markers, diagnostics) carries the same stamp: the node
-clock's time when the graph snapshot for that solve was taken.
+clock's time when the graph snapshot for that solve was taken. Between solves, the timer
+republishes the diagnostics (stamped now) only when the counters moved, e.g. after rejections.
+
+Diagnostics (one ``DiagnosticStatus`` named ``"<node name>: rotation averaging"``, hardware_id
+= the node's fully qualified name): ``nodes``, ``measurements``, ``edges_received``,
+``edges_accepted``, ``edges_rejected``, one key per rejection reason (the adapters' reason
+strings, e.g. ``zero_quaternion``), ``default_weight_covariance``, ``clamped_weight``; after a
+solve ``solved_nodes``, ``solved_edges``, ``anchor``, ``components``, ``detached_components``,
+``filtered_outliers``, ``depth``, ``residual_{median,mean,max}_deg`` (inlier edges); and
+``last_solve_duration_s``, ``graph_version``, ``solved_version``, ``solves_completed``,
+``solves_failed``, ``timer_ticks_skipped_busy``, ``last_error``. Level: ERROR while the last
+solve raised; WARN for detached components, a median inlier residual above
+``residual_warn_deg`` or an ``anchor_frame`` not seen yet; OK otherwise.
 
 If the solver raises, the diagnostics turn ERROR with the exception text, the last good
 orientations are kept (nothing new is published) and edges keep being accepted; the graph is

@@ -144,7 +144,7 @@ class ViewGraph:
         w = np.ones(len(ni)) if weight is None else np.asarray(weight, dtype=np.float64)
         if not (len(ni) == len(nj) == R.shape[0] == w.shape[0]):
             raise ValueError("node_i, node_j, R and weight must have the same length")
-        for a, b, Rk, wk in zip(ni, nj, R, w):
+        for a, b, Rk, wk in zip(ni, nj, R, w, strict=True):
             self.add_edge(a, b, Rk, float(wk))
 
     def clear(self) -> None:
