@@ -221,6 +221,81 @@ def fit_symmetric(
     return DMFFit(H.detach().cpu().numpy(), weights.cpu().numpy(), loss_val)
 
 
+def fit_symmetric_lbfgs(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, s: DMFSettings,
+    H0: FloatArray, rounds: int = 3, inner_iterations: int = 200,
+    outlier_factor: float = 3.0, progress: Callable[[int, float], None] | None = None,
+) -> DMFFit:
+    """Sparse-graph variant: same H H^T model, entry-wise Huber loss, L-BFGS, warm start.
+
+    Chain-like SLAM graphs are badly conditioned for first-order steps from near zero
+    (information must diffuse along long chains), so this variant starts from ``H0`` (the
+    chordal solution) and uses L-BFGS on a smooth loss: Huber with ``delta`` =
+    ``s.huber_delta``, i.e. L2 on inlier-sized residuals and L1 beyond. Between the
+    ``rounds`` L-BFGS runs, weights are updated like Sec. IV-C but only above
+    ``outlier_factor * tau`` (tau = median chordal residual), so clean edges keep their
+    weight while gross outliers are scaled down by ``outlier_factor * tau / r``. Residuals
+    are first scaled by sqrt(initial weight), so each edge is judged against its own
+    stated noise level (SLAM graphs mix very different information matrices); the
+    rounds stop early once no edge is above that threshold.
+    """
+    dev = s.device
+    gen = torch.Generator().manual_seed(s.seed)
+    n3 = 3 * num_nodes
+    k = s.depth // 2
+    h = s.hidden_width
+    shapes = [(n3, 3)] if k == 1 else [(n3, h)] + [(h, h)] * (k - 2) + [(h, 3)]
+    factors = _warm_factors(H0, shapes, s.init_scale, gen, dev)
+    blocks = EdgeBlocks(num_nodes, i, j, dev)
+    tR = torch.as_tensor(R, dtype=torch.float64, device=dev).permute(1, 2, 0).contiguous()
+    weights = torch.as_tensor(w, dtype=torch.float64, device=dev).clone()
+    noise_scale = weights.sqrt()  # residual x sqrt(information): comparable across edges
+    eye = torch.eye(3, dtype=torch.float64, device=dev)
+    delta = max(s.huber_delta, 1e-9)
+
+    def huber(x: torch.Tensor) -> torch.Tensor:
+        a = x.abs()
+        return torch.where(a <= delta, 0.5 * x * x / delta, a - 0.5 * delta)
+
+    opt = torch.optim.LBFGS(factors, lr=1.0, max_iter=inner_iterations, history_size=20,
+                            tolerance_grad=1e-10, tolerance_change=1e-14,
+                            line_search_fn="strong_wolfe")
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad(set_to_none=True)
+        H = _product(factors).view(num_nodes, 3, 3)
+        Hd = H.detach()
+        Hi, Hj, P = blocks.products(Hd)
+        D = P.sub_(tR)
+        Dd = torch.bmm(Hd, Hd.transpose(1, 2)) - eye
+        loss = (weights * huber(D).sum(dim=(0, 1))).sum() + s.diagonal_weight * huber(Dd).sum()
+        G = (D / delta).clamp_(-1.0, 1.0).mul_(weights)
+        grad_H = blocks.node_gradient(G, Hi, Hj)
+        grad_H += 2.0 * s.diagonal_weight * torch.bmm((Dd / delta).clamp(-1.0, 1.0), Hd)
+        H.backward(grad_H)
+        return loss
+
+    loss_val = float("nan")
+    for rnd in range(rounds):
+        opt.state.clear()  # the weights changed: start a fresh curvature history
+        loss_val = float(opt.step(closure))
+        if progress is not None:
+            progress((rnd + 1) * inner_iterations, loss_val)
+        if not s.reweighting or rnd + 1 == rounds:
+            continue
+        with torch.no_grad():
+            Hd = _product(factors).view(num_nodes, 3, 3)
+            r = blocks.products(Hd)[2].sub_(tR).pow(2).sum(dim=(0, 1)).sqrt() * noise_scale
+            thresh = outlier_factor * torch.median(r)
+            scale = torch.where(r > thresh, thresh / r.clamp_min(1e-12), torch.ones_like(r))
+            weights *= scale
+            if float((1.0 - scale).abs().max()) < 1e-3:
+                break  # no edge is an outlier any more: converged
+    with torch.no_grad():
+        H = _product(factors).view(num_nodes, 3, 3)
+    return DMFFit(H.detach().cpu().numpy(), weights.cpu().numpy(), loss_val)
+
+
 def fit_vanilla(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, s: DMFSettings,
     progress: Callable[[int, float], None] | None = None,

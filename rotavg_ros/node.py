@@ -209,6 +209,8 @@ def _descriptor(
     return desc
 
 
+_SOLVER_DEFAULTS = SolverOptions()
+
 # name -> (default, descriptor). Every parameter the node has; see config/rotavg.yaml.
 PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
     "world_frame": ("world", _descriptor(
@@ -234,12 +236,16 @@ PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
         "Lower clamp of covariance-derived edge weights.", fp_range=(1e-9, 1e9))),
     "max_weight": (1e3, _descriptor(
         "Upper clamp of covariance-derived edge weights.", fp_range=(1e-9, 1e9))),
-    "depths": ([2, 4, 6, 8], _descriptor(
+    "mode": (_SOLVER_DEFAULTS.mode, _descriptor(
+        "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "
+        "L-BFGS, for chain-like SLAM graphs) or auto (by mean degree).",
+        constraints="one of: auto, dense, sparse")),
+    "depths": (list(_SOLVER_DEFAULTS.depths), _descriptor(
         "Candidate DMF depths (positive, even); the one with the lowest cost wins.",
         constraints="non-empty list of positive even integers")),
-    "iterations": (3000, _descriptor(
+    "iterations": (_SOLVER_DEFAULTS.iterations, _descriptor(
         "Gradient iterations of the DMF optimisation per depth.", int_range=(1, 10_000_000))),
-    "sigma": (0.5, _descriptor(
+    "sigma": (_SOLVER_DEFAULTS.sigma, _descriptor(
         "Spanning-tree filter threshold on the chordal distance d_chord(R_ij, R_ij^tree).",
         fp_range=(0.0, 2.83))),
     "seed": (0, _descriptor("Random seed of the solver.", int_range=(0, 2**31 - 1))),
@@ -270,6 +276,9 @@ def _validate(name: str, value: Any) -> str | None:
             RepeatPolicy(value)
         except ValueError:
             return f"repeat_policy must be one of merge, latest, first; got {value!r}"
+    elif name == "mode":
+        if value not in ("auto", "dense", "sparse"):
+            return f"mode must be one of auto, dense, sparse; got {value!r}"
     elif name == "depths":
         depths = list(value)
         if not depths or any(int(d) <= 0 or int(d) % 2 for d in depths):
@@ -430,6 +439,7 @@ class RotavgNode(Node):
                 reserved_frames=frozenset({p["world_frame"]}),
             ),
             solver=SolverOptions(
+                mode=str(p["mode"]),
                 depths=tuple(int(d) for d in p["depths"]),
                 iterations=int(p["iterations"]),
                 sigma=float(p["sigma"]),

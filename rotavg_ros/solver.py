@@ -19,7 +19,8 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from rotavg_ros.dmf import DMFFit, DMFSettings, fit_symmetric, fit_vanilla
+from rotavg_ros.chordal_init import chordal_rotations
+from rotavg_ros.dmf import DMFFit, DMFSettings, fit_symmetric, fit_symmetric_lbfgs, fit_vanilla
 from rotavg_ros.edge_filter import filter_edges
 from rotavg_ros.so3 import geodesic_distance, project_to_so3
 from rotavg_ros.solver_types import SolveResult, SolverOptions
@@ -122,7 +123,9 @@ class RotationAverager:
         else:
             kept = np.ones(i.size, bool)
         fi, fj, fR, fw = i[kept], j[kept], R[kept], w[kept]
-        fits = self._fit_depths(n, fi, fj, fR, fw)
+        sparse = self.is_sparse(n, fi.size)
+        self._say(f"{'sparse' if sparse else 'dense'} mode: {n} nodes, {fi.size} edges")
+        fits = self._fit_depths(n, fi, fj, fR, fw, sparse)
         costs: dict[int, float] = {}
         rots: dict[int, FloatArray] = {}
         for depth, fit in fits.items():
@@ -138,16 +141,30 @@ class RotationAverager:
         rot = np.einsum("nab,cb->nac", rot, rot[0])  # gauge: R_i R_0^T, anchor -> I
         return ComponentSolution(project_to_so3(rot), kept, best, costs)
 
+    def is_sparse(self, num_nodes: int, num_edges: int) -> bool:
+        """Whether the sparse-graph variant is used for this component."""
+        mode = self.options.mode
+        if mode not in ("auto", "dense", "sparse"):
+            raise ValueError(f"mode must be auto, dense or sparse, got {mode!r}")
+        if mode == "auto":
+            return 2.0 * num_edges / max(num_nodes, 1) < self.options.sparse_mean_degree
+        return mode == "sparse"
+
     # ----------------------------------------------------------------- private
     def _fit_depths(
-        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
+        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool
     ) -> dict[int, DMFFit]:
         opt = self.options
         device = resolve_device(opt.device)
-        width = opt.hidden_width or (3 * n if n <= opt.max_full_width_nodes else 3 * min(
-            n, opt.max_full_width_nodes))
-        fit = fit_symmetric if opt.explicit_constraint else fit_vanilla
-        depths = list(dict.fromkeys(opt.depths))
+        width = opt.hidden_width or (3 * n if n <= opt.max_full_width_nodes
+                                     else opt.scalable_width)
+        depths = list(dict.fromkeys(opt.sparse_depths if sparse else opt.depths))
+        H0: FloatArray | None = None
+        delta = 0.0
+        if sparse and opt.explicit_constraint:
+            H0 = chordal_rotations(n, i, j, R, w)
+            pred = np.einsum("eab,ecb->eac", H0[i], H0[j])
+            delta = opt.huber_factor * float(np.median(np.abs(pred - R)))
         threads = opt.threads or torch.get_num_threads()
         workers = 1 if device != "cpu" else max(1, min(len(depths), threads))
 
@@ -156,14 +173,21 @@ class RotationAverager:
                 depth=depth, hidden_width=width, iterations=opt.iterations, lr=opt.lr,
                 reweighting=opt.reweighting, reweight_every=opt.reweight_every,
                 warmup=opt.warmup, init_scale=opt.init_scale, seed=opt.seed + depth,
-                device=device,
+                device=device, huber_delta=delta,
             )
-            self._say(f"depth {depth}: fitting {n} nodes, {i.size} edges")
 
             def report(step: int, loss: float) -> None:
-                self._say(f"depth {depth}: iteration {step}/{opt.iterations}, loss {loss:.4g}")
+                self._say(f"depth {depth}: iteration {step}, loss {loss:.4g}")
 
-            return fit(n, i, j, R, w, s, report)
+            if not opt.explicit_constraint:
+                return fit_vanilla(n, i, j, R, w, s, report)
+            if H0 is not None:
+                s.diagonal_weight = opt.sparse_diagonal_weight
+                return fit_symmetric_lbfgs(
+                    n, i, j, R, w, s, H0, rounds=opt.sparse_rounds,
+                    inner_iterations=opt.sparse_inner_iterations,
+                    outlier_factor=opt.sparse_outlier_factor, progress=report)
+            return fit_symmetric(n, i, j, R, w, s, report)
 
         if workers == 1:
             return {d: run(d) for d in depths}

@@ -22,8 +22,16 @@ ProgressFn = Callable[[str], None]
 class SolverOptions:
     """Every knob of the filtered-DMF pipeline; defaults are the measured choices."""
 
+    mode: str = "auto"
+    """``dense``: the paper's DMF (near-zero init, entry-wise L1, Adam, Sec. IV-C
+    reweighting). ``sparse``: chordal warm start, entry-wise Huber, L-BFGS (for chain-like
+    SLAM graphs). ``auto``: sparse when the mean degree 2|E|/N < ``sparse_mean_degree``."""
+    sparse_mean_degree: float = 10.0
     depths: tuple[int, ...] = (2, 4, 6, 8)
     """Candidate depths d (even); H has d/2 factors. The best by the Eq. 3 cost wins."""
+    sparse_depths: tuple[int, ...] = (2,)
+    """Depth candidates in sparse mode. Depth matters through DMF's implicit bias from a
+    near-zero start; a warm-started L-BFGS fit of a smooth loss has none, so one is enough."""
     use_filter: bool = True
     """Spanning-tree edge filtering (ablation (a) turns it off)."""
     use_support_count: bool = True
@@ -41,12 +49,24 @@ class SolverOptions:
     warmup: int = 200
     """lambda_warm: ... after this many warm-up iterations."""
     init_scale: float = 1e-2
+    huber_factor: float = 30.0
+    """Sparse mode: Huber delta = this x median |entry residual| of the chordal start."""
+    sparse_rounds: int = 8
+    """Sparse mode: at most this many L-BFGS runs, with an outlier reweighting between."""
+    sparse_inner_iterations: int = 300
+    sparse_diagonal_weight: float = 10.0
+    sparse_outlier_factor: float = 5.0
+    """Sparse mode: edges whose noise-scaled residual exceeds this x the median are
+    down-weighted between L-BFGS runs."""
     hidden_width: int | None = None
-    """Width of the hidden factors; None = 3N (the paper) up to ``max_full_width_nodes``."""
+    """Width of the hidden factors; None = 3N (the paper) up to ``max_full_width_nodes``,
+    ``scalable_width`` above."""
     max_full_width_nodes: int = 1000
+    scalable_width: int = 64
     seed: int = 0
     device: str = "cpu"
     threads: int | None = None
+    """Torch threads for the solve (None: torch's default); depth candidates share them."""
     progress: ProgressFn | None = field(default=None, repr=False, compare=False)
 
 
