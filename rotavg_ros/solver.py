@@ -138,8 +138,9 @@ class RotationAverager:
             raise FloatingPointError("every DMF candidate diverged (non-finite factors)")
         best = min(costs, key=lambda d: costs[d])
         rot = rots[best]
-        rot = np.einsum("nab,cb->nac", rot, rot[0])  # gauge: R_i R_0^T, anchor -> I
-        return ComponentSolution(project_to_so3(rot), kept, best, costs)
+        rot = project_to_so3(np.einsum("nab,cb->nac", rot, rot[0]))  # gauge: R_i R_0^T
+        rot[0] = np.eye(3)  # exactly, not up to the SVD's rounding
+        return ComponentSolution(rot, kept, best, costs)
 
     def is_sparse(self, num_nodes: int, num_edges: int) -> bool:
         """Whether the sparse-graph variant is used for this component."""
@@ -189,11 +190,11 @@ class RotationAverager:
                     outlier_factor=opt.sparse_outlier_factor, progress=report)
             return fit_symmetric(n, i, j, R, w, s, report)
 
-        if workers == 1:
-            return {d: run(d) for d in depths}
         previous = torch.get_num_threads()
         torch.set_num_threads(max(1, threads // workers))
         try:
+            if workers == 1:
+                return {d: run(d) for d in depths}
             # Largest depth first so the slow candidates start early.
             with ThreadPoolExecutor(max_workers=workers) as pool:
                 futures = {d: pool.submit(run, d) for d in sorted(depths, reverse=True)}

@@ -1,0 +1,7 @@
+#!/usr/bin/env bash
+# The test command of README.md (and of CI): set up the venv, then run the whole suite.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup_venv.sh
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+exec "${ROTAVG_VENV:-.venv}/bin/python" -m pytest -n 2 -q "$@"

@@ -1,0 +1,168 @@
+"""Triangle enumeration and the spanning-tree edge filter (Algorithm 1)."""
+
+from __future__ import annotations
+
+from itertools import combinations
+
+import numpy as np
+import pytest
+
+from rotavg_ros.edge_filter import filter_edges, loop_statistics
+from rotavg_ros.so3 import chordal_distance, random_rotations, rotation_about_axis
+from rotavg_ros.triangles import enumerate_triangles
+
+
+def _random_edges(n: int, p: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    pairs = [(a, b) for a, b in combinations(range(n), 2) if rng.random() < p]
+    rng.shuffle(pairs)  # input order must not matter
+    e = np.asarray(pairs, dtype=np.int64)
+    return e[:, 0], e[:, 1]
+
+
+def _noisy_graph(
+    n: int, p: float, noise_deg: float, outlier_frac: float, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Edges (i < j) with R_ij = R_i R_j^T perturbed, a fraction replaced by random rotations."""
+    rng = np.random.default_rng(seed)
+    R = random_rotations(n, rng)
+    i, j = _random_edges(n, p, rng)
+    Rij = np.einsum("eab,ecb->eac", R[i], R[j])
+    noise = rotation_about_axis(rng.normal(size=(i.size, 3)),
+                                np.radians(noise_deg) * rng.normal(size=i.size))
+    Rij = noise @ Rij
+    outlier = np.zeros(i.size, bool)
+    outlier[rng.choice(i.size, int(round(outlier_frac * i.size)), replace=False)] = True
+    Rij[outlier] = random_rotations(int(outlier.sum()), rng)
+    return i, j, Rij, R, outlier
+
+
+def _brute_force_triangles(i: np.ndarray, j: np.ndarray, n: int) -> set[tuple[int, int, int]]:
+    adj = np.zeros((n, n), bool)
+    adj[i, j] = adj[j, i] = True
+    return {(a, b, c) for a, b, c in combinations(range(n), 3)
+            if adj[a, b] and adj[b, c] and adj[a, c]}
+
+
+@pytest.mark.parametrize("chunk_pairs", [4_000_000, 7])
+def test_triangles_match_brute_force(chunk_pairs: int) -> None:
+    rng = np.random.default_rng(0)
+    n = 30
+    i, j = _random_edges(n, 0.3, rng)
+    tri = enumerate_triangles(i, j, n, chunk_pairs=chunk_pairs)
+    found = [tuple(t) for t in tri.nodes.tolist()]
+    assert len(found) == len(set(found))  # each triangle once
+    assert set(found) == _brute_force_triangles(i, j, n)
+    assert tri.count == len(found) > 0
+    # Edge indices point at the right edges: ab, bc, ac.
+    a, b, c = tri.nodes.T
+    np.testing.assert_array_equal(i[tri.e_ab], a)
+    np.testing.assert_array_equal(j[tri.e_ab], b)
+    np.testing.assert_array_equal(i[tri.e_bc], b)
+    np.testing.assert_array_equal(j[tri.e_bc], c)
+    np.testing.assert_array_equal(i[tri.e_ac], a)
+    np.testing.assert_array_equal(j[tri.e_ac], c)
+
+
+def test_triangles_edge_cases() -> None:
+    empty = np.zeros(0, np.int64)
+    assert enumerate_triangles(empty, empty, 5).count == 0
+    chain = np.arange(5)
+    assert enumerate_triangles(chain[:-1], chain[1:], 5).count == 0
+    with pytest.raises(ValueError):
+        enumerate_triangles(np.array([2]), np.array([1]), 3)
+
+
+def test_loop_statistics_zero_on_consistent_data() -> None:
+    rng = np.random.default_rng(1)
+    n = 12
+    R = random_rotations(n, rng)
+    i, j = _random_edges(n, 0.6, rng)
+    Rij = np.einsum("eab,ecb->eac", R[i], R[j])
+    support, total, count, epsilon, ntri = loop_statistics(i, j, Rij, n)
+    assert ntri == len(_brute_force_triangles(i, j, n)) > 0
+    assert epsilon < 1e-12
+    assert np.all(total < 1e-10)
+    assert count.sum() == 3 * ntri
+
+
+def test_filter_removes_planted_outliers() -> None:
+    n = 40
+    i, j, Rij, _, outlier = _noisy_graph(n, 0.7, 1.0, 0.15, seed=3)
+    res = filter_edges(i, j, Rij, np.ones(i.size), n, sigma=0.2)
+    assert res.num_triangles > 0 and np.all(res.tested)
+    removed = ~res.kept
+    frac_outliers_removed = removed[outlier].mean()
+    frac_inliers_kept = res.kept[~outlier].mean()
+    assert frac_outliers_removed >= 0.9, frac_outliers_removed
+    assert frac_inliers_kept >= 0.9, frac_inliers_kept
+    # Spanning tree: N - 1 edges, all kept, mostly inliers.
+    assert res.in_tree.sum() == n - 1
+    assert np.all(res.kept[res.in_tree])
+    assert outlier[res.in_tree].sum() == 0
+    assert res.tree_rotations.shape == (n, 3, 3)
+    assert res.num_removed == int(removed.sum())
+
+
+def test_filter_without_support_count_still_runs() -> None:
+    n = 40
+    i, j, Rij, _, outlier = _noisy_graph(n, 0.7, 1.0, 0.15, seed=3)
+    res = filter_edges(i, j, Rij, np.ones(i.size), n, sigma=0.2, use_support_count=False)
+    assert res.in_tree.sum() == n - 1
+    assert res.kept.shape == (i.size,)
+    assert np.all(res.kept[res.in_tree])
+    # Mean loop error alone is still a useful ordering on this easy graph.
+    assert (~res.kept)[outlier].mean() >= 0.8
+    assert res.kept[~outlier].mean() >= 0.8
+
+
+def test_edges_on_no_triangle_are_never_removed() -> None:
+    # A chain 0-1-...-9 plus a single long loop closure (0, 9) that is a gross outlier,
+    # plus one triangle elsewhere so epsilon is defined.
+    n = 12
+    rng = np.random.default_rng(4)
+    R = random_rotations(n, rng)
+    pairs = [(k, k + 1) for k in range(9)] + [(0, 9), (10, 11), (9, 10), (9, 11)]
+    i = np.array([p[0] for p in pairs])
+    j = np.array([p[1] for p in pairs])
+    Rij = np.einsum("eab,ecb->eac", R[i], R[j])
+    closure = pairs.index((0, 9))
+    Rij[closure] = rotation_about_axis([0.0, 0.0, 1.0], 2.5) @ Rij[closure]  # ~143 deg off
+    res = filter_edges(i, j, Rij, np.ones(i.size), n, sigma=0.2)
+    on_triangle = np.zeros(i.size, bool)
+    on_triangle[[pairs.index(p) for p in [(9, 10), (10, 11), (9, 11)]]] = True
+    np.testing.assert_array_equal(res.tested, on_triangle)
+    assert np.all(res.kept[~res.tested])
+    assert res.kept[closure]
+    assert res.tree_residual[closure] > 0.2  # it would have failed the sigma test
+    assert res.num_triangles == 1
+    assert res.in_tree.sum() == n - 1
+
+
+def test_tree_rotations_exact_on_noise_free_data() -> None:
+    n = 25
+    rng = np.random.default_rng(5)
+    R = random_rotations(n, rng)
+    i, j = _random_edges(n, 0.4, rng)
+    Rij = np.einsum("eab,ecb->eac", R[i], R[j])
+    res = filter_edges(i, j, Rij, np.ones(i.size), n, sigma=0.2)
+    assert np.all(res.kept)
+    assert np.all(res.tree_residual < 1e-12)
+    # Root (node 0) is identity: tree rotations are R_k R_0^T.
+    expected = np.einsum("kab,cb->kac", R, R[0])
+    np.testing.assert_allclose(res.tree_rotations, expected, atol=1e-12)
+    assert np.all(chordal_distance(res.tree_rotations[0], np.eye(3)) < 1e-15)
+
+
+def test_tree_rotations_per_component_roots() -> None:
+    # Two components: {0, 1, 2} and {3, 4}; each root gets identity.
+    R = random_rotations(5, np.random.default_rng(6))
+    pairs = [(0, 1), (1, 2), (0, 2), (3, 4)]
+    i = np.array([p[0] for p in pairs])
+    j = np.array([p[1] for p in pairs])
+    Rij = np.einsum("eab,ecb->eac", R[i], R[j])
+    res = filter_edges(i, j, Rij, np.ones(i.size), 5, sigma=0.2)
+    assert res.in_tree.sum() == 3
+    np.testing.assert_allclose(res.tree_rotations[0], np.eye(3), atol=1e-15)
+    np.testing.assert_allclose(res.tree_rotations[3], np.eye(3), atol=1e-15)
+    np.testing.assert_allclose(res.tree_rotations[4], R[4] @ R[3].T, atol=1e-12)
+    np.testing.assert_allclose(res.tree_rotations[2], R[2] @ R[0].T, atol=1e-12)
