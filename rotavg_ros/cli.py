@@ -18,6 +18,7 @@ import numpy as np
 from rotavg_ros.io_1dsfm import read_1dsfm_egs, read_1dsfm_npz, read_rotations_npz
 from rotavg_ros.io_g2o import read_g2o, read_g2o_vertices, write_g2o
 from rotavg_ros.metrics import evaluate
+from rotavg_ros.replay import register as register_replay
 from rotavg_ros.solver import RotationAverager
 from rotavg_ros.solver_types import SolverOptions
 from rotavg_ros.view_graph import ViewGraph
@@ -137,6 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("estimate", help=".g2o written by 'rotavg solve'")
     e.add_argument("ground_truth", help="1DSfM .npz with R_gt, or a .npz with R_ref / R_gt")
     e.set_defaults(func=cmd_evaluate)
+    register_replay(sub)
     return p
 
 
