@@ -15,11 +15,14 @@ Input edges are ``(i, j, R_ij)`` with ``i < j`` and ``R_ij ~= R_i R_j^T`` (world
    when ``d_chord(R_ij, R_i^tree R_j^tree^T) > sigma``.
 
 Edges that lie on no triangle (common in SLAM graphs, which are mostly chains) carry no
-loop evidence. They are ordered after every triangle-supported edge (by weight, then
-input order), so the tree uses them only where the graph needs them, and they are **never
-removed** by the sigma test: their tree path can be long and its drift would make a
-correct loop closure look like an outlier. They are reported as ``untested`` and left to
-the robust L1 loss and the reweighting of the DMF stage.
+loop evidence of their own. They are ordered after every triangle-supported edge (by
+weight, then input order), so the tree uses them only where the graph needs them. They are
+tested against the tree only where that test means something: when the tree path between
+their end nodes consists of triangle-verified edges alone (e.g. a loop closure over an
+odometry chain whose steps are confirmed by short loops). Then they are removed beyond the
+looser ``sigma_untested``, which allows for the drift of a long path. Where the path uses
+unverified edges (pose graphs without triangles, such as the SE-Sync benchmarks), the tree
+is no reference and the edge is kept, left to the robust loss and reweighting of the DMF.
 """
 
 from __future__ import annotations
@@ -47,6 +50,8 @@ class EdgeFilterResult:
     in_tree: BoolArray
     tested: BoolArray
     """True for edges on at least one triangle (subject to the sigma test)."""
+    path_tested: BoolArray
+    """Edges on no triangle whose tree path is all triangle-verified (``sigma_untested``)."""
     support: IntArray
     mean_loop_error: FloatArray
     tree_residual: FloatArray
@@ -132,8 +137,13 @@ def filter_edges(
     num_nodes: int,
     sigma: float,
     use_support_count: bool = True,
+    sigma_untested: float | None = None,
 ) -> EdgeFilterResult:
-    """Algorithm 1 of the paper; see the module docstring for the rules."""
+    """Algorithm 1 of the paper; see the module docstring for the rules.
+
+    ``sigma_untested`` (default: no test) is the threshold for edges on no triangle whose
+    tree path is triangle-verified.
+    """
     support, total, count, epsilon, num_tri = loop_statistics(i, j, R, num_nodes)
     tested = count > 0
     mean_err = np.full(i.size, np.inf)
@@ -151,9 +161,27 @@ def filter_edges(
     rot = tree_rotations(i, j, R, tree_edges, num_nodes)
     R_tree = np.einsum("eab,ecb->eac", rot[i], rot[j])
     resid = chordal_distance(R, R_tree)
-    kept = ~tested | (resid <= sigma) | in_tree
-    return EdgeFilterResult(kept, in_tree, tested, support, mean_err, resid, rot,
+    path_tested = np.zeros(i.size, bool)
+    if sigma_untested is not None:
+        path_tested = ~tested & ~in_tree & _verified_path(i, j, tree_edges, tested, num_nodes)
+    kept = in_tree | np.where(tested, resid <= sigma,
+                              ~path_tested | (resid <= (sigma_untested or 0.0)))
+    return EdgeFilterResult(kept, in_tree, tested, path_tested, support, mean_err, resid, rot,
                             epsilon, num_tri)
+
+
+def _verified_path(
+    i: IntArray, j: IntArray, tree_edges: IntArray, tested: BoolArray, num_nodes: int
+) -> BoolArray:
+    """Per edge: are its end nodes joined by triangle-verified tree edges only?
+
+    In a tree the path between two nodes is unique, so it is all-verified exactly when the
+    nodes share a component of the forest made of the verified tree edges.
+    """
+    ver = tree_edges[tested[tree_edges]]
+    adj = coo_matrix((np.ones(ver.size), (i[ver], j[ver])), shape=(num_nodes, num_nodes))
+    labels = connected_components(adj, directed=False)[1]
+    return labels[i] == labels[j]
 
 
 def num_components(i: IntArray, j: IntArray, num_nodes: int) -> int:

@@ -116,7 +116,8 @@ class RotationAverager:
         opt = self.options
         w = w / np.mean(w)
         if opt.use_filter:
-            filt = filter_edges(i, j, R, w, n, opt.sigma, opt.use_support_count)
+            filt = filter_edges(i, j, R, w, n, opt.sigma, opt.use_support_count,
+                                opt.sigma_untested)
             kept = filt.kept
             self._say(f"filter: {filt.num_triangles} triangles, removed "
                       f"{filt.num_removed}/{i.size} edges")

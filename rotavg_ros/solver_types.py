@@ -41,7 +41,10 @@ class SolverOptions:
     reweighting: bool = True
     """IRLS-style reweighting of Sec. IV-C (ablation (d) turns it off)."""
     sigma: float = 0.2
-    """Filter threshold on d_chord(R_ij, R_ij^tree)."""
+    """Filter threshold on d_chord(R_ij, R_ij^tree) (0.2 = 8.1 deg)."""
+    sigma_untested: float | None = 0.6
+    """Threshold for edges on no triangle whose tree path is triangle-verified
+    (0.6 = 24.5 deg, allowing for path drift); None never removes such edges."""
     iterations: int = 1000
     lr: float = 0.01
     reweight_every: int = 25
