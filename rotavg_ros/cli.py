@@ -1,4 +1,4 @@
-"""Command line: ``rotavg solve | evaluate`` (``python -m rotavg_ros`` is the same).
+"""Command line: ``rotavg solve | evaluate | replay`` (``python -m rotavg_ros`` is the same).
 
 Output g2o files hold one ``VERTEX_SE3:QUAT id 0 0 0 qx qy qz qw`` per node with the
 **node-to-world** quaternion (g2o's vertex convention), i.e. the transpose of our
@@ -51,6 +51,9 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     """Solver knobs shared by every command that solves."""
     d = SolverOptions()
     g = parser.add_argument_group("solver")
+    g.add_argument("--mode", default=d.mode, choices=("auto", "dense", "sparse"),
+                   help="dense: the paper's DMF; sparse: chordal start + Huber + L-BFGS for "
+                   "chain-like SLAM graphs; auto: by mean degree (default %(default)s)")
     g.add_argument("--seed", type=int, default=d.seed)
     g.add_argument("--depths", default=",".join(map(str, d.depths)),
                    help="candidate depths, comma separated (default %(default)s)")
@@ -74,7 +77,7 @@ def options_from_args(args: argparse.Namespace) -> SolverOptions:
         raise InputError(f"--depths: expected comma-separated integers: {args.depths!r}") from exc
     progress = None if getattr(args, "quiet", False) else _stderr
     return SolverOptions(
-        depths=depths, iterations=args.iterations, lr=args.lr, sigma=args.sigma,
+        mode=args.mode, depths=depths, iterations=args.iterations, lr=args.lr, sigma=args.sigma,
         seed=args.seed, device=args.device, threads=args.threads,
         hidden_width=args.hidden_width, use_filter=not args.no_filter,
         use_support_count=not args.no_support_count,

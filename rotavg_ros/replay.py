@@ -745,7 +745,6 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     node.add_argument("--world-frame", default="world")
     node.add_argument("--anchor-frame", default="")
     node.add_argument("--repeat-policy", default="merge", choices=("merge", "latest", "first"))
-    node.add_argument("--mode", default="auto", choices=("auto", "dense", "sparse"))
     node.add_argument("--quaternion-tolerance", type=float, default=1e-3)
     node.add_argument("--reference-variance", type=float, default=None,
                       help="rad^2 per axis that maps to weight 1 (default (1 deg)^2)")
@@ -770,7 +769,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
     if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", args.node_name):
         raise ReplayError(f"--node-name must be a ROS node name, got {args.node_name!r}")
     options = dataclasses.replace(
-        options_from_args(args), mode=args.mode,
+        options_from_args(args),
         progress=_solver_progress if args.verbose else None)
     params: dict[str, Any] = {
         "world_frame": args.world_frame,
