@@ -15,14 +15,15 @@ are drawn in the ``detached_*`` namespaces with muted colours, laid out to the r
 anchor component.
 
 Only this package (``msg_adapters``) imports ROS message modules; ``rotavg_ros``' solver
-modules stay ROS-free.
+modules stay ROS-free. The message-independent helpers (:func:`grid_layout`,
+:func:`node_to_world_quaternions`, :func:`format_diagnostic_value`, :class:`Level`) live in
+:mod:`rotavg_ros.pipeline`, shared with the rosbags builders of :mod:`rotavg_ros.bag_outputs`,
+and are re-exported here.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Hashable, Mapping, Sequence
-from enum import IntEnum
 from typing import Any
 
 import numpy as np
@@ -33,7 +34,29 @@ from numpy.typing import NDArray
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from rotavg_ros.so3 import matrix_to_quat
+from rotavg_ros.pipeline import (
+    Level,
+    format_diagnostic_value,
+    grid_layout,
+    node_to_world_quaternions,
+)
+
+__all__ = [
+    "NS_AXES",
+    "NS_DETACHED_AXES",
+    "NS_DETACHED_LABELS",
+    "NS_LABELS",
+    "Level",
+    "clear_markers",
+    "diagnostic_array",
+    "diagnostic_status",
+    "diagnostic_values",
+    "format_diagnostic_value",
+    "grid_layout",
+    "node_to_world_quaternions",
+    "orientation_markers",
+    "orientation_transforms",
+]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -42,21 +65,6 @@ NS_AXES = "orientations"
 NS_LABELS = "labels"
 NS_DETACHED_AXES = "detached_orientations"
 NS_DETACHED_LABELS = "detached_labels"
-
-
-class Level(IntEnum):
-    """``diagnostic_msgs/DiagnosticStatus`` levels as ints (the message field is a byte)."""
-
-    OK = 0
-    WARN = 1
-    ERROR = 2
-    STALE = 3
-
-
-def node_to_world_quaternions(rotations: FloatArray) -> FloatArray:
-    """``(N, 4)`` quaternions (x, y, z, w) of ``R_i^T`` for world-to-node ``rotations``."""
-    R = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
-    return matrix_to_quat(np.swapaxes(R, 1, 2))
 
 
 def orientation_transforms(
@@ -77,25 +85,6 @@ def orientation_transforms(
         rot.x, rot.y, rot.z, rot.w = (float(v) for v in q)
         out.append(msg)
     return out
-
-
-def grid_layout(component: IntArray, spacing: float = 1.0) -> FloatArray:
-    """``(N, 3)`` marker positions: each component on its own square grid in the z=0 plane.
-
-    Component 0 (the anchor's) starts at the origin; the next components follow along +x with
-    a gap of two ``spacing``. Inside a component, nodes keep their index order row by row.
-    """
-    comp = np.asarray(component, dtype=np.int64).reshape(-1)
-    pos = np.zeros((comp.size, 3))
-    x0 = 0.0
-    for label in np.unique(comp):
-        idx = np.flatnonzero(comp == label)
-        cols = max(1, math.ceil(math.sqrt(idx.size)))
-        k = np.arange(idx.size)
-        pos[idx, 0] = x0 + (k % cols) * spacing
-        pos[idx, 1] = -(k // cols) * spacing
-        x0 += (cols + 1) * spacing
-    return pos
 
 
 def _color(r: float, g: float, b: float, a: float = 1.0) -> ColorRGBA:
@@ -193,16 +182,6 @@ def clear_markers(world_frame: str, stamp: Time) -> MarkerArray:
     return MarkerArray(markers=[clear])
 
 
-def _format_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    if isinstance(value, (list, tuple)):
-        return ", ".join(_format_value(v) for v in value)
-    return str(value)
-
-
 def diagnostic_status(
     name: str,
     level: Level | int,
@@ -220,7 +199,9 @@ def diagnostic_status(
     status.name = name
     status.message = message
     status.hardware_id = hardware_id
-    status.values = [KeyValue(key=str(k), value=_format_value(v)) for k, v in values.items()]
+    status.values = [
+        KeyValue(key=str(k), value=format_diagnostic_value(v)) for k, v in values.items()
+    ]
     return status
 
 

@@ -1,5 +1,10 @@
 """``rotavg_node``: live rotation averaging over ROS 2 topics (rclpy).
 
+This module is the rclpy shell (parameters with descriptors, topics, services, scheduling,
+publishing). Everything it shares with the offline replay (parameter defaults and checks,
+settings, anchor choice and solve, solve bookkeeping, diagnostics) is in
+:mod:`rotavg_ros.pipeline`.
+
 Conventions
 -----------
 * ``R_i`` is the **world-to-node** rotation of node (frame) ``i``; an edge carries
@@ -79,14 +84,11 @@ first); the timer and services use a reentrant group and coordinate through a lo
 from __future__ import annotations
 
 import concurrent.futures
-import math
 import threading
-import time
-from collections.abc import Callable, Generator, Hashable, Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
@@ -105,16 +107,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from msg_adapters.inputs import (
-    ADAPTER_REASONS,
-    DEFAULT_REFERENCE_VARIANCE,
-    NOTE_KEYS,
-    AdapterConfig,
-    edge_from_odometry,
-    edge_from_transform,
-)
+from msg_adapters.inputs import edge_from_odometry, edge_from_transform
 from msg_adapters.outputs import (
-    Level,
     clear_markers,
     diagnostic_array,
     diagnostic_status,
@@ -122,27 +116,29 @@ from msg_adapters.outputs import (
     orientation_transforms,
 )
 from rotavg_ros.accumulator import (
-    INVALID_MEASUREMENT,
     AccumulatorStats,
     EdgeAccumulator,
     EdgeMeasurement,
     Rejection,
 )
-from rotavg_ros.solver_types import SolveResult, SolverOptions
-from rotavg_ros.view_graph import RepeatPolicy, ViewGraph
-
-SolveFn = Callable[[ViewGraph, Hashable | None, SolverOptions], SolveResult]
-"""``(graph, anchor, options) -> SolveResult``; the default runs :class:`RotationAverager`."""
-
-NODE_NAME = "rotavg_node"
-MAX_DETACHED_LISTED = 20
-
-
-def default_solve(graph: ViewGraph, anchor: Hashable | None, options: SolverOptions) -> SolveResult:
-    """Run the filtered-DMF solver (imported lazily: it pulls in torch)."""
-    from rotavg_ros.solver import RotationAverager
-
-    return RotationAverager(options).solve(graph, anchor=anchor)
+from rotavg_ros.pipeline import (
+    FAILED,
+    NO_EDGES,
+    NODE_NAME,
+    PARAMETER_DEFAULTS,
+    SOLVED,
+    Settings,
+    SolveAttempt,
+    SolveBookkeeping,
+    SolveFn,
+    default_solve,
+    diagnostic_name,
+    diagnostic_values,
+    make_accumulator,
+    settings_from_parameters,
+    solve_snapshot,
+)
+from rotavg_ros.solver_types import SolveResult
 
 
 def _warm_import() -> None:
@@ -150,19 +146,6 @@ def _warm_import() -> None:
         import rotavg_ros.solver  # noqa: F401
     except Exception:  # noqa: BLE001 - reported by the first solve instead
         pass
-
-
-@dataclass(frozen=True)
-class Settings:
-    """Parameter values as used by the node (refreshed after every successful set)."""
-
-    world_frame: str
-    anchor_frame: str
-    publish_markers: bool
-    marker_spacing: float
-    residual_warn_deg: float
-    adapter: AdapterConfig
-    solver: SolverOptions
 
 
 @dataclass(frozen=True)
@@ -209,87 +192,66 @@ def _descriptor(
     return desc
 
 
-_SOLVER_DEFAULTS = SolverOptions()
-
-# name -> (default, descriptor). Every parameter the node has; see config/rotavg.yaml.
-PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
-    "world_frame": ("world", _descriptor(
+# name -> descriptor; defaults (and checks) come from rotavg_ros.pipeline. See config/rotavg.yaml.
+_DESCRIPTORS: dict[str, ParameterDescriptor] = {
+    "world_frame": _descriptor(
         "Frame id of the published orientations' header (the parent frame in TF).",
-        constraints="non-empty frame id without '/' prefix")),
-    "anchor_frame": ("", _descriptor(
-        "Frame that gets the identity rotation; empty = the first frame accepted.")),
-    "solve_period": (1.0, _descriptor(
+        constraints="non-empty frame id without '/' prefix"),
+    "anchor_frame": _descriptor(
+        "Frame that gets the identity rotation; empty = the first frame accepted."),
+    "solve_period": _descriptor(
         "Seconds between timer checks; a solve starts only if the graph changed.",
-        fp_range=(0.01, 3600.0), read_only=True)),
-    "repeat_policy": ("merge", _descriptor(
+        fp_range=(0.01, 3600.0), read_only=True),
+    "repeat_policy": _descriptor(
         "How repeated measurements of one frame pair combine: merge (robust average, weights "
         "add), latest (newest wins) or first (oldest wins).",
-        read_only=True, constraints="one of: merge, latest, first")),
-    "quaternion_tolerance": (1e-3, _descriptor(
+        read_only=True, constraints="one of: merge, latest, first"),
+    "quaternion_tolerance": _descriptor(
         "Accepted | |q| - 1 |; within it the quaternion is normalised, beyond it the edge is "
-        "rejected as non_unit_quaternion.", fp_range=(0.0, 0.5))),
-    "reference_variance": (DEFAULT_REFERENCE_VARIANCE, _descriptor(
+        "rejected as non_unit_quaternion.", fp_range=(0.0, 0.5)),
+    "reference_variance": _descriptor(
         "Per-axis rotation variance (rad^2) of an Odometry edge that gets weight 1; "
         "weight = 3 * reference_variance / trace(rotation covariance). Default (1 deg)^2.",
-        fp_range=(1e-12, 10.0))),
-    "min_weight": (1e-3, _descriptor(
-        "Lower clamp of covariance-derived edge weights.", fp_range=(1e-9, 1e9))),
-    "max_weight": (1e3, _descriptor(
-        "Upper clamp of covariance-derived edge weights.", fp_range=(1e-9, 1e9))),
-    "mode": (_SOLVER_DEFAULTS.mode, _descriptor(
+        fp_range=(1e-12, 10.0)),
+    "min_weight": _descriptor(
+        "Lower clamp of covariance-derived edge weights.", fp_range=(1e-9, 1e9)),
+    "max_weight": _descriptor(
+        "Upper clamp of covariance-derived edge weights.", fp_range=(1e-9, 1e9)),
+    "mode": _descriptor(
         "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "
         "L-BFGS, for chain-like SLAM graphs) or auto (by mean degree).",
-        constraints="one of: auto, dense, sparse")),
-    "depths": (list(_SOLVER_DEFAULTS.depths), _descriptor(
+        constraints="one of: auto, dense, sparse"),
+    "depths": _descriptor(
         "Candidate DMF depths (positive, even); the one with the lowest cost wins.",
-        constraints="non-empty list of positive even integers")),
-    "iterations": (_SOLVER_DEFAULTS.iterations, _descriptor(
-        "Gradient iterations of the DMF optimisation per depth.", int_range=(1, 10_000_000))),
-    "sigma": (_SOLVER_DEFAULTS.sigma, _descriptor(
+        constraints="non-empty list of positive even integers"),
+    "iterations": _descriptor(
+        "Gradient iterations of the DMF optimisation per depth.", int_range=(1, 10_000_000)),
+    "sigma": _descriptor(
         "Spanning-tree filter threshold on the chordal distance d_chord(R_ij, R_ij^tree).",
-        fp_range=(0.0, 2.83))),
-    "seed": (0, _descriptor("Random seed of the solver.", int_range=(0, 2**31 - 1))),
-    "device": ("cpu", _descriptor(
-        "Torch device of the solver, e.g. cpu or cuda:0.", constraints="torch device string")),
-    "threads": (0, _descriptor(
-        "Torch CPU threads for the solver; 0 = torch's default.", int_range=(0, 1024))),
-    "publish_markers": (True, _descriptor("Publish ~/markers (RViz MarkerArray) after solves.")),
-    "marker_spacing": (1.0, _descriptor(
+        fp_range=(0.0, 2.83)),
+    "seed": _descriptor("Random seed of the solver.", int_range=(0, 2**31 - 1)),
+    "device": _descriptor(
+        "Torch device of the solver, e.g. cpu or cuda:0.", constraints="torch device string"),
+    "threads": _descriptor(
+        "Torch CPU threads for the solver; 0 = torch's default.", int_range=(0, 1024)),
+    "publish_markers": _descriptor("Publish ~/markers (RViz MarkerArray) after solves."),
+    "marker_spacing": _descriptor(
         "Grid spacing (m) of the marker layout (there are no translations to show).",
-        fp_range=(0.01, 100.0))),
-    "residual_warn_deg": (5.0, _descriptor(
+        fp_range=(0.01, 100.0)),
+    "residual_warn_deg": _descriptor(
         "Diagnostics turn WARN when the median inlier residual exceeds this (deg).",
-        fp_range=(0.0, 180.0))),
-    "qos_depth": (1000, _descriptor(
+        fp_range=(0.0, 180.0)),
+    "qos_depth": _descriptor(
         "KEEP_LAST depth of the reliable edge subscriptions.",
-        int_range=(1, 1_000_000), read_only=True)),
-    "orientations_qos_depth": (10000, _descriptor(
+        int_range=(1, 1_000_000), read_only=True),
+    "orientations_qos_depth": _descriptor(
         "KEEP_LAST depth of ~/orientations; a solve publishes one message per node, so keep "
-        "it at least the number of nodes.", int_range=(1, 10_000_000), read_only=True)),
+        "it at least the number of nodes.", int_range=(1, 10_000_000), read_only=True),
 }
-
-
-def _validate(name: str, value: Any) -> str | None:
-    """Reason why ``value`` is not acceptable for parameter ``name``, or None."""
-    if name == "repeat_policy":
-        try:
-            RepeatPolicy(value)
-        except ValueError:
-            return f"repeat_policy must be one of merge, latest, first; got {value!r}"
-    elif name == "mode":
-        if value not in ("auto", "dense", "sparse"):
-            return f"mode must be one of auto, dense, sparse; got {value!r}"
-    elif name == "depths":
-        depths = list(value)
-        if not depths or any(int(d) <= 0 or int(d) % 2 for d in depths):
-            return f"depths must be a non-empty list of positive even integers; got {depths}"
-    elif name == "world_frame":
-        if not value or value.startswith("/") or not value.isprintable() or " " in value:
-            return f"world_frame must be a non-empty tf2 frame id; got {value!r}"
-    elif name == "device":
-        if not str(value).strip():
-            return "device must not be empty"
-    return None
+# name -> (default, descriptor): every parameter the node declares.
+PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
+    name: (default, _DESCRIPTORS[name]) for name, default in PARAMETER_DEFAULTS.items()
+}
 
 
 class RotavgNode(Node):
@@ -307,20 +269,12 @@ class RotavgNode(Node):
         super().__init__(node_name, **kwargs)
         for name, (default, descriptor) in PARAMETERS.items():
             self.declare_parameter(name, default, descriptor)
-        for name in PARAMETERS:
-            reason = _validate(name, self.get_parameter(name).value)
-            if reason is not None:
-                raise ValueError(reason)
-        self._settings = self._read_settings()
+        self._settings = self._read_settings()  # raises ValueError for an invalid value
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
 
         self._solve_fn: SolveFn = solve_fn if solve_fn is not None else default_solve
-        self._acc = EdgeAccumulator(
-            self.get_parameter("repeat_policy").value,
-            reasons=(*ADAPTER_REASONS, INVALID_MEASUREMENT),
-            note_keys=NOTE_KEYS,
-        )
+        self._acc = make_accumulator(self.get_parameter("repeat_policy").value)
 
         # Scheduling state, guarded by _sched_lock.
         self._sched_lock = threading.Lock()
@@ -328,19 +282,13 @@ class RotavgNode(Node):
         self._forced: concurrent.futures.Future[SolveOutcome] | None = None
         self._last_attempted_version = -1
         self._last_diag_received = -1
-        self._skipped_busy = 0
         self._closing = False
         # Held from the worker's "was the graph reset?" check to the end of its publishing,
         # and by ~/reset: a reset never interleaves with the publication of a stale result.
         self._publish_lock = threading.Lock()
-        # Solve bookkeeping, written by the worker only.
-        self._last_result: SolveResult | None = None
-        self._last_solved_version = -1
-        self._last_duration_s = math.nan
-        self._last_error = ""
-        self._anchor_warning = ""
-        self._solves_ok = 0
-        self._solves_failed = 0
+        # Solve bookkeeping: written by the worker (and ~/reset under _publish_lock), except
+        # skipped_busy, which the timer counts under _sched_lock.
+        self._book = SolveBookkeeping()
 
         self._pool = concurrent.futures.ThreadPoolExecutor(
             max_workers=1, thread_name_prefix="rotavg_solver"
@@ -400,7 +348,7 @@ class RotavgNode(Node):
     @property
     def last_result(self) -> SolveResult | None:
         """The last successful solve's result (None before the first one or after a reset)."""
-        return self._last_result
+        return self._book.last_result
 
     def request_solve(self) -> concurrent.futures.Future[SolveOutcome]:
         """Queue a solve (what ``~/solve`` does) and return its future."""
@@ -422,42 +370,20 @@ class RotavgNode(Node):
         super().destroy_node()
 
     # ------------------------------------------------------------------ parameters
-    def _read_settings(self) -> Settings:
-        p = {name: self.get_parameter(name).value for name in PARAMETERS}
-        threads = int(p["threads"])
-        return Settings(
-            world_frame=p["world_frame"],
-            anchor_frame=p["anchor_frame"],
-            publish_markers=bool(p["publish_markers"]),
-            marker_spacing=float(p["marker_spacing"]),
-            residual_warn_deg=float(p["residual_warn_deg"]),
-            adapter=AdapterConfig(
-                quaternion_tolerance=float(p["quaternion_tolerance"]),
-                reference_variance=float(p["reference_variance"]),
-                min_weight=float(p["min_weight"]),
-                max_weight=float(p["max_weight"]),
-                reserved_frames=frozenset({p["world_frame"]}),
-            ),
-            solver=SolverOptions(
-                mode=str(p["mode"]),
-                depths=tuple(int(d) for d in p["depths"]),
-                iterations=int(p["iterations"]),
-                sigma=float(p["sigma"]),
-                seed=int(p["seed"]),
-                device=str(p["device"]),
-                threads=threads if threads > 0 else None,
-            ),
-        )
+    def _read_settings(self, changed: Sequence[Parameter] = ()) -> Settings:
+        """Settings from the current parameter values, with ``changed`` applied on top.
+
+        Raises ``ValueError`` (see :func:`rotavg_ros.pipeline.settings_from_parameters`).
+        """
+        values = {name: self.get_parameter(name).value for name in PARAMETERS}
+        values.update({p.name: p.value for p in changed})
+        return settings_from_parameters(values)
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        for param in params:
-            reason = _validate(param.name, param.value)
-            if reason is not None:
-                return SetParametersResult(successful=False, reason=reason)
-        values = {name: self.get_parameter(name).value for name in ("min_weight", "max_weight")}
-        values.update({p.name: p.value for p in params if p.name in values})
-        if values["min_weight"] > values["max_weight"]:
-            return SetParametersResult(successful=False, reason="min_weight > max_weight")
+        try:
+            self._read_settings(params)
+        except ValueError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:
@@ -486,7 +412,7 @@ class RotavgNode(Node):
             changed = stats.version != self._last_attempted_version
             if busy:
                 if changed:
-                    self._skipped_busy += 1
+                    self._book.skipped_busy += 1
                 return
             if changed:
                 self._current = self._pool.submit(self._solve_job, False)
@@ -508,9 +434,7 @@ class RotavgNode(Node):
     ) -> Trigger.Response:
         with self._publish_lock:
             self._acc.reset()
-            self._last_result = None
-            self._last_error = ""
-            self._anchor_warning = ""
+            self._book.reset()
         self.get_logger().info("graph reset")
         response.success = True
         response.message = "graph and counters cleared"
@@ -543,53 +467,27 @@ class RotavgNode(Node):
                 return SolveOutcome(True, "graph unchanged")
             self._last_attempted_version = snap.version
         stamp = self.get_clock().now().to_msg()
-        graph = snap.graph
-        if graph.num_nodes == 0:
-            self._last_result = None
-            self._anchor_warning = ""
-            if settings.publish_markers:
-                self._pub_markers.publish(clear_markers(settings.world_frame, stamp))
-            self._publish_diagnostics(stamp)
-            return SolveOutcome(False, "no edges yet")
-        anchor: Hashable | None = snap.first_node
-        if settings.anchor_frame:
-            if not graph.has_node(settings.anchor_frame):
-                self._anchor_warning = f"anchor frame {settings.anchor_frame!r} not seen yet"
-                self._publish_diagnostics(stamp)
-                return SolveOutcome(False, self._anchor_warning)
-            anchor = settings.anchor_frame
-        self._anchor_warning = ""
+        attempt = solve_snapshot(snap, settings, self._solve_fn)
+        if attempt.status == SOLVED:
+            with self._publish_lock:
+                if self._acc.generation != snap.generation:
+                    return SolveOutcome(False, "graph was reset during the solve; result discarded")
+                self._book.record(attempt, snap.version)
+                self._publish_result(attempt, stamp, settings)
+            return SolveOutcome(True, attempt.message)
+        self._book.record(attempt, snap.version)
+        if attempt.status == NO_EDGES and settings.publish_markers:
+            self._pub_markers.publish(clear_markers(settings.world_frame, stamp))
+        elif attempt.status == FAILED:
+            self.get_logger().error(
+                f"solve failed, keeping the last orientations: {attempt.error}"
+            )
+        self._publish_diagnostics(stamp)
+        return SolveOutcome(False, attempt.message)
 
-        t0 = time.perf_counter()
-        try:
-            result = self._solve_fn(graph, anchor, settings.solver)
-        except Exception as exc:  # noqa: BLE001 - reported as ERROR, node keeps running
-            self._last_duration_s = time.perf_counter() - t0
-            self._last_error = f"{type(exc).__name__}: {exc}"
-            self._solves_failed += 1
-            self.get_logger().error(f"solve failed, keeping the last orientations: {exc!r}")
-            self._publish_diagnostics(stamp)
-            return SolveOutcome(False, f"solve failed: {self._last_error}")
-        duration = time.perf_counter() - t0
-        with self._publish_lock:
-            if self._acc.generation != snap.generation:
-                return SolveOutcome(False, "graph was reset during the solve; result discarded")
-            self._publish_result(result, snap.version, duration, stamp, settings)
-        num_components = len(result.anchors)
-        return SolveOutcome(
-            True,
-            f"solved {len(result.node_ids)} nodes in {num_components} component(s) "
-            f"in {duration:.3f} s (depth {result.depth}, {result.num_filtered} filtered)",
-        )
-
-    def _publish_result(
-        self, result: SolveResult, version: int, duration: float, stamp: Any, settings: Settings
-    ) -> None:
-        self._last_result = result
-        self._last_solved_version = version
-        self._last_duration_s = duration
-        self._last_error = ""
-        self._solves_ok += 1
+    def _publish_result(self, attempt: SolveAttempt, stamp: Any, settings: Settings) -> None:
+        result = attempt.result
+        assert result is not None
         for msg in orientation_transforms(
             result.node_ids, result.rotations, settings.world_frame, stamp
         ):
@@ -604,95 +502,14 @@ class RotavgNode(Node):
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self, stamp: Any, stats: AccumulatorStats | None = None) -> None:
         stats = stats if stats is not None else self._acc.stats()
-        level, message, values = self._diagnostic_values(stats)
+        level, message, values = diagnostic_values(stats, self._book, self._settings)
         status = diagnostic_status(
-            f"{self.get_name()}: rotation averaging", level, message, values,
+            diagnostic_name(self.get_name()), level, message, values,
             hardware_id=self.get_fully_qualified_name(),
         )
         with self._sched_lock:
             self._last_diag_received = stats.received
         self._pub_diag.publish(diagnostic_array([status], stamp))
-
-    def _diagnostic_values(
-        self, stats: AccumulatorStats
-    ) -> tuple[Level, str, dict[str, Any]]:
-        settings = self._settings
-        result = self._last_result
-        values: dict[str, Any] = {
-            "nodes": stats.num_nodes,
-            "measurements": stats.num_measurements,
-            "edges_received": stats.received,
-            "edges_accepted": stats.accepted,
-            "edges_rejected": stats.num_rejected,
-        }
-        values.update(stats.rejected)
-        values.update(stats.notes)
-        problems: list[str] = []
-        level = Level.OK
-        if result is not None:
-            inlier = np.asarray(result.residuals_deg)[np.asarray(result.edge_inlier, bool)]
-            median = float(np.median(inlier)) if inlier.size else math.nan
-            num_components = len(result.anchors)
-            detached = _describe_detached(result)
-            values.update({
-                "solved_nodes": len(result.node_ids),
-                "solved_edges": int(np.asarray(result.residuals_deg).size),
-                "anchor": str(result.anchors[0]) if result.anchors else "",
-                "components": num_components,
-                "detached_components": detached or "none",
-                "filtered_outliers": result.num_filtered,
-                "depth": result.depth,
-                "residual_median_deg": median,
-                "residual_mean_deg": float(np.mean(inlier)) if inlier.size else math.nan,
-                "residual_max_deg": float(np.max(inlier)) if inlier.size else math.nan,
-            })
-            if num_components > 1:
-                level = Level.WARN
-                problems.append(
-                    f"{num_components - 1} component(s) not connected to the anchor"
-                )
-            if math.isfinite(median) and median > settings.residual_warn_deg:
-                level = Level.WARN
-                problems.append(
-                    f"median residual {median:.2f} deg > {settings.residual_warn_deg:g} deg"
-                )
-        with self._sched_lock:
-            skipped = self._skipped_busy
-        values.update({
-            "last_solve_duration_s": self._last_duration_s,
-            "graph_version": stats.version,
-            "solved_version": self._last_solved_version,
-            "solves_completed": self._solves_ok,
-            "solves_failed": self._solves_failed,
-            "timer_ticks_skipped_busy": skipped,
-            "last_error": self._last_error or "none",
-        })
-        if self._anchor_warning:
-            level = max(level, Level.WARN)
-            problems.insert(0, self._anchor_warning)
-        if self._last_error:
-            level = Level.ERROR
-            problems.insert(0, f"last solve failed ({self._last_error}); keeping last result")
-        if problems:
-            message = "; ".join(problems)
-        elif result is None:
-            message = "waiting for edges"
-        else:
-            message = f"{len(result.node_ids)} nodes solved"
-        return level, message, values
-
-
-def _describe_detached(result: SolveResult) -> str:
-    """``"anchor_a (5 nodes), anchor_b (2 nodes)"`` for components other than 0."""
-    component = np.asarray(result.component)
-    sizes = np.bincount(component, minlength=len(result.anchors))
-    parts = [
-        f"{result.anchors[c]} ({int(sizes[c])} nodes)"
-        for c in range(1, min(len(result.anchors), MAX_DETACHED_LISTED + 1))
-    ]
-    if len(result.anchors) - 1 > MAX_DETACHED_LISTED:
-        parts.append(f"... {len(result.anchors) - 1 - MAX_DETACHED_LISTED} more")
-    return ", ".join(parts)
 
 
 def main(args: Sequence[str] | None = None) -> None:

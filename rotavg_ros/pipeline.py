@@ -84,7 +84,10 @@ PARAMETER_DEFAULTS: dict[str, Any] = {
 
 
 class Level(IntEnum):
-    """``diagnostic_msgs/DiagnosticStatus`` levels (same values as ``msg_adapters.outputs``)."""
+    """``diagnostic_msgs/DiagnosticStatus`` levels as ints (the message field is a byte).
+
+    Re-exported by ``msg_adapters.outputs``.
+    """
 
     OK = 0
     WARN = 1

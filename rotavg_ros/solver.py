@@ -9,7 +9,7 @@ the output gives every connected component its own gauge, with its anchor at ide
 from __future__ import annotations
 
 import time
-from collections.abc import Hashable
+from collections.abc import Hashable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -80,19 +80,36 @@ class RotationAverager:
                 raise ValueError(f"depths must be even and >= 2, got {d}")
 
     # ------------------------------------------------------------------ public
-    def solve(self, graph: ViewGraph, anchor: Hashable | None = None) -> SolveResult:
+    def solve(
+        self,
+        graph: ViewGraph,
+        anchor: Hashable | None = None,
+        initial: Mapping[Hashable, FloatArray] | None = None,
+        initial_depth: int | None = None,
+    ) -> SolveResult:
         """Solve every connected component of ``graph``.
 
         ``anchor`` (a node id; default: the first node added) gets identity; each other
         component is anchored at its first-added node. Component label 0 is the anchor's.
+
+        ``initial`` (node id -> world-to-node rotation, any gauge), e.g. the previous
+        solution of a growing graph, warm-starts the solve: known nodes start there, new
+        ones from the spanning tree, and dense mode runs ``warm_iterations`` at
+        ``warm_lr`` for the single depth ``initial_depth`` (the previous choice).
         """
         edges = graph.edge_arrays()
         ids = graph.node_ids
         anchor_idx = graph.index_of(anchor) if anchor is not None and graph.has_node(
             anchor) else 0
+        init = None
+        if initial:
+            init = np.full((graph.num_nodes, 3, 3), np.nan)
+            for k, node_id in enumerate(ids):
+                if node_id in initial:
+                    init[k] = initial[node_id]
         result = average_rotations(
             graph.num_nodes, edges.i, edges.j, edges.R, edges.weight, self.options,
-            anchor=anchor_idx,
+            anchor=anchor_idx, initial=init, initial_depth=initial_depth,
         )
         rotations, component, comp_anchor, depth, kept, costs, duration = result
         residuals = _residuals_deg(rotations, edges.i, edges.j, edges.R)
@@ -110,15 +127,21 @@ class RotationAverager:
         )
 
     def solve_component(
-        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
+        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+        initial: FloatArray | None = None, initial_depth: int | None = None,
     ) -> ComponentSolution:
-        """Solve one connected graph in local indices; node 0 is the anchor."""
+        """Solve one connected graph in local indices; node 0 is the anchor.
+
+        ``initial`` (n, 3, 3) world-to-node rotations with NaN rows for unknown nodes.
+        """
         opt = self.options
         w = w / np.mean(w)
+        tree_rot: FloatArray | None = None
         if opt.use_filter:
             filt = filter_edges(i, j, R, w, n, opt.sigma, opt.use_support_count,
                                 opt.sigma_untested)
             kept = filt.kept
+            tree_rot = filt.tree_rotations
             self._say(f"filter: {filt.num_triangles} triangles, removed "
                       f"{filt.num_removed}/{i.size} edges")
         else:
@@ -126,7 +149,15 @@ class RotationAverager:
         fi, fj, fR, fw = i[kept], j[kept], R[kept], w[kept]
         sparse = self.is_sparse(n, fi.size)
         self._say(f"{'sparse' if sparse else 'dense'} mode: {n} nodes, {fi.size} edges")
-        fits = self._fit_depths(n, fi, fj, fR, fw, sparse)
+        H0 = None
+        if initial is not None and opt.explicit_constraint:
+            known = np.all(np.isfinite(initial.reshape(n, 9)), axis=1)
+            if known.mean() >= opt.warm_min_known:
+                if tree_rot is None:
+                    tree_rot = chordal_rotations(n, fi, fj, fR, fw)
+                H0 = warm_start_rotations(initial, known, tree_rot)
+                self._say(f"warm start: {int(known.sum())}/{n} nodes known")
+        fits = self._fit_depths(n, fi, fj, fR, fw, sparse, H0, initial_depth)
         costs: dict[int, float] = {}
         rots: dict[int, FloatArray] = {}
         for depth, fit in fits.items():
@@ -154,17 +185,21 @@ class RotationAverager:
 
     # ----------------------------------------------------------------- private
     def _fit_depths(
-        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool
+        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool,
+        warm: FloatArray | None = None, warm_depth: int | None = None,
     ) -> dict[int, DMFFit]:
         opt = self.options
         device = resolve_device(opt.device)
         width = opt.hidden_width or (3 * n if n <= opt.max_full_width_nodes
                                      else opt.scalable_width)
         depths = list(dict.fromkeys(opt.sparse_depths if sparse else opt.depths))
-        H0: FloatArray | None = None
+        if warm is not None and not sparse:
+            depths = [warm_depth if warm_depth in depths else depths[0]]
+        H0: FloatArray | None = warm
         delta = 0.0
         if sparse and opt.explicit_constraint:
-            H0 = chordal_rotations(n, i, j, R, w)
+            if H0 is None:
+                H0 = chordal_rotations(n, i, j, R, w)
             pred = np.einsum("eab,ecb->eac", H0[i], H0[j])
             delta = opt.huber_factor * float(np.median(np.abs(pred - R)))
         threads = opt.threads or torch.get_num_threads()
@@ -183,12 +218,15 @@ class RotationAverager:
 
             if not opt.explicit_constraint:
                 return fit_vanilla(n, i, j, R, w, s, report)
-            if H0 is not None:
+            if sparse and H0 is not None:
                 s.diagonal_weight = opt.sparse_diagonal_weight
                 return fit_symmetric_lbfgs(
                     n, i, j, R, w, s, H0, rounds=opt.sparse_rounds,
                     inner_iterations=opt.sparse_inner_iterations,
                     outlier_factor=opt.sparse_outlier_factor, progress=report)
+            if warm is not None:
+                s.iterations, s.lr, s.warmup = opt.warm_iterations, opt.warm_lr, 0
+                return fit_symmetric(n, i, j, R, w, s, report, H0=warm)
             return fit_symmetric(n, i, j, R, w, s, report)
 
         previous = torch.get_num_threads()
@@ -208,6 +246,20 @@ class RotationAverager:
             self.options.progress(text)
 
 
+def warm_start_rotations(
+    initial: FloatArray, known: NDArray[np.bool_], tree: FloatArray
+) -> FloatArray:
+    """Known nodes keep ``initial``; the others get ``tree`` moved into its gauge.
+
+    Both are world-to-node, so the gauge acts on the right: ``initial_i ~= tree_i Q`` with
+    ``Q = proj(sum_known tree_i^T initial_i)``.
+    """
+    Q = project_to_so3(np.einsum("kba,kbc->ac", tree[known], initial[known]))
+    out = tree @ Q
+    out[known] = initial[known]
+    return out
+
+
 def average_rotations(
     num_nodes: int,
     i: IntArray,
@@ -216,6 +268,8 @@ def average_rotations(
     weight: FloatArray,
     options: SolverOptions | None = None,
     anchor: int = 0,
+    initial: FloatArray | None = None,
+    initial_depth: int | None = None,
 ) -> tuple[FloatArray, IntArray, list[int], int, BoolArray, dict[int, float], float]:
     """Array interface: solve each component; see :meth:`RotationAverager.solve`.
 
@@ -248,7 +302,9 @@ def average_rotations(
         swap = li > lj
         li, lj = np.where(swap, lj, li), np.where(swap, li, lj)
         lR = np.where(swap[:, None, None], lR.transpose(0, 2, 1), lR)
-        sol = averager.solve_component(nodes.size, li, lj, lR, weight[sel])
+        sol = averager.solve_component(
+            nodes.size, li, lj, lR, weight[sel],
+            None if initial is None else initial[nodes], initial_depth)
         rotations[nodes] = sol.rotations
         kept[sel] = sol.kept
         if nodes.size > best_size:

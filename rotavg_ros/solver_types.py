@@ -61,6 +61,12 @@ class SolverOptions:
     sparse_outlier_factor: float = 5.0
     """Sparse mode: edges whose noise-scaled residual exceeds this x the median are
     down-weighted between L-BFGS runs."""
+    warm_iterations: int = 150
+    """Dense mode, warm-started re-solve: Adam iterations (vs ``iterations`` cold)."""
+    warm_lr: float = 1e-3
+    """Dense mode, warm-started re-solve: initial learning rate."""
+    warm_min_known: float = 0.5
+    """Warm start only when at least this fraction of a component's nodes is known."""
     hidden_width: int | None = None
     """Width of the hidden factors; None = 3N (the paper) up to ``max_full_width_nodes``,
     ``scalable_width`` above."""

@@ -476,7 +476,7 @@ def test_shipped_params_file_via_context_args(tmp_path: Path) -> None:
     assert sorted(keys) == sorted(PARAMETERS)
     changed = tmp_path / "rotavg.yaml"
     changed.write_text(text.replace("world_frame: world ", "world_frame: shipped_check ")
-                       .replace("iterations: 3000 ", "iterations: 1234 "))
+                       .replace("iterations: 1000 ", "iterations: 1234 "))
     for path, expected in [(REPO / "config" / "rotavg.yaml", {}),
                            (changed, {"world_frame": "shipped_check", "iterations": 1234})]:
         with RosHarness(args=["--ros-args", "--params-file", str(path)]) as h:

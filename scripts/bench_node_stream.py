@@ -1,0 +1,585 @@
+#!/usr/bin/env python3
+"""Streaming benchmark of the live ``rotavg_node`` (a benchmark that prints figures, not a test).
+
+What it does
+------------
+1. Builds a synthetic graph: ``--nodes`` random world-to-node rotations ``R_i`` (Haar), a
+   sequential chain ``i -> i+1`` (so it is connected) plus random extra pairs up to
+   ``--edges`` measurements ``R_ij = R_i R_j^T`` perturbed by Gaussian noise
+   (``--noise-deg`` per axis, i.e. a mean angle of about 1.6x that), a fraction
+   ``--outliers`` of the non-chain edges replaced by uniformly random rotations. The stream
+   order is shuffled.
+2. Starts ``.venv/bin/rotavg_node`` as a separate process with
+   ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` and its own ``ROS_DOMAIN_ID``.
+3. This process publishes the edges on ``/rotavg_node/edges`` (``TransformStamped``,
+   reliable, KEEP_LAST depth >= number of edges) at ``--rate`` edges/s, paced on the
+   monotonic clock, after waiting for the subscription to match.
+4. Reads ``/diagnostics`` until the node reports ``edges_received == sent`` and checks
+   ``accepted + rejected == sent`` (no edge lost).
+5. End-to-end latency: from the publication of the LAST edge to the reception of the first
+   complete set of ``~/orientations`` (every node) of a solve that includes that edge. A
+   solve includes it when its stamp (the node's clock when it took the graph snapshot;
+   orientations and diagnostics of a solve share it) is not earlier than the last send and
+   its diagnostics say ``solved_version == graph_version`` with ``edges_received == sent``.
+   Compared with ``solve_period + last_solve_duration_s`` plus ``--tolerance`` (DDS
+   transport, the node's publication of one message per node and this process's executor).
+6. Accuracy of those orientations against the synthetic ground truth, gauge-aligned with
+   :func:`rotavg_ros.metrics.evaluate`, and the node's CPU time and RSS (``/proc/<pid>``).
+
+Usage (from the repository root)::
+
+    .venv/bin/python scripts/bench_node_stream.py --nodes 1000 --rate 2000 --edges 20000 \\
+        --solve-period 1.0 --seed 0 --extra-node-args='-p iterations:=300'
+
+``--extra-node-args`` is one string, split like a shell command line and appended after the
+script's own ``--ros-args -p ...`` (give it with ``=`` because it starts with ``-``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Hashable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT))
+
+from rotavg_ros.metrics import evaluate  # noqa: E402
+from rotavg_ros.so3 import matrix_to_quat, quat_to_matrix, random_rotations  # noqa: E402
+
+NODE_NAME = "rotavg_node"
+DIAG_NAME = f"{NODE_NAME}: rotation averaging"
+# Node parameters this benchmark passes unless --extra-node-args overrides them (later -p
+# wins). A default solve (4 depths x 1000 Adam iterations) of the default graph takes about
+# a minute on a 2-core machine, so the benchmark runs the dense DMF with fewer iterations.
+DEFAULT_EXTRA_NODE_ARGS = "-p iterations:=300"
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+# ---------------------------------------------------------------------- synthetic graph
+@dataclass
+class SyntheticGraph:
+    ids: list[str]
+    gt: dict[Hashable, np.ndarray]  # world-to-node R_i
+    i: np.ndarray
+    j: np.ndarray
+    R: np.ndarray  # (E, 3, 3) measured R_ij, in stream order
+    outlier: np.ndarray  # (E,) bool
+    num_pairs: int
+
+
+def _small_rotations(rng: np.random.Generator, n: int, sigma_rad: float) -> np.ndarray:
+    v = rng.normal(scale=sigma_rad, size=(n, 3))
+    theta = np.linalg.norm(v, axis=1)
+    axis = v / np.maximum(theta, 1e-300)[:, None]
+    half = theta[:, None] / 2.0
+    q = np.concatenate([axis * np.sin(half), np.cos(half)], axis=1)
+    q[theta == 0] = (0.0, 0.0, 0.0, 1.0)
+    return quat_to_matrix(q)
+
+
+def make_graph(nodes: int, edges: int, seed: int, noise_deg: float,
+               outlier_frac: float) -> SyntheticGraph:
+    """Chain + random distinct extra pairs (repeats only when every pair is used)."""
+    if nodes < 2:
+        raise ValueError("--nodes must be >= 2")
+    if edges < nodes - 1:
+        raise ValueError(f"--edges must be >= nodes - 1 = {nodes - 1} (the chain)")
+    rng = np.random.default_rng(seed)
+    Rw = random_rotations(nodes, rng)
+    chain_i = np.arange(nodes - 1)
+    pairs = {(int(a), int(a) + 1) for a in chain_i}
+    ii, jj = list(chain_i), list(chain_i + 1)
+    max_pairs = nodes * (nodes - 1) // 2
+    extra = edges - (nodes - 1)
+    while extra > 0 and len(pairs) < max_pairs:
+        a, b = (int(x) for x in rng.integers(0, nodes, size=2))
+        key = (min(a, b), max(a, b))
+        if a == b or key in pairs:
+            continue
+        pairs.add(key)
+        ii.append(a)
+        jj.append(b)
+        extra -= 1
+    if extra > 0:  # more measurements than pairs: repeat random pairs (the node merges them)
+        pick = rng.integers(0, len(ii), size=extra)
+        ii += [ii[k] for k in pick]
+        jj += [jj[k] for k in pick]
+    i = np.asarray(ii, dtype=np.int64)
+    j = np.asarray(jj, dtype=np.int64)
+    E = i.size
+    R = Rw[i] @ np.swapaxes(Rw[j], 1, 2)
+    R = _small_rotations(rng, E, math.radians(noise_deg)) @ R
+    outlier = np.zeros(E, dtype=bool)
+    non_chain = np.arange(nodes - 1, E)
+    n_out = int(round(outlier_frac * non_chain.size))
+    if n_out:
+        outlier[rng.choice(non_chain, size=n_out, replace=False)] = True
+        R[outlier] = random_rotations(n_out, rng)
+    order = rng.permutation(E)
+    ids = [f"n{k:05d}" for k in range(nodes)]
+    return SyntheticGraph(ids, {ids[k]: Rw[k] for k in range(nodes)}, i[order], j[order],
+                          R[order], outlier[order], len(pairs))
+
+
+# ---------------------------------------------------------------------- /proc readings
+@dataclass
+class ProcSample:
+    t: float
+    cpu_s: float
+    rss_mb: float
+    hwm_mb: float
+    threads: int
+
+
+def proc_sample(pid: int) -> ProcSample | None:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rindex(")") + 2:].split()  # fields from 3 (state) on
+    cpu = (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime (fields 14, 15)
+    kv = {}
+    for line in status.splitlines():
+        key, _, value = line.partition(":")
+        kv[key] = value.split()
+    return ProcSample(time.monotonic(), cpu, int(kv["VmRSS"][0]) / 1024.0,
+                      int(kv["VmHWM"][0]) / 1024.0, int(kv["Threads"][0]))
+
+
+# ---------------------------------------------------------------------- ROS side
+@dataclass
+class DiagRecord:
+    t_recv: float
+    stamp_ns: int
+    level: int
+    message: str
+    values: dict[str, str]
+
+    def num(self, key: str, default: float = math.nan) -> float:
+        try:
+            return float(self.values[key])
+        except (KeyError, ValueError):
+            return default
+
+
+@dataclass
+class OrientationSet:
+    quats: dict[str, tuple[float, float, float, float]] = field(default_factory=dict)
+    t_first: float = math.nan
+    t_complete: float = math.nan
+
+
+class Observer:
+    """Callbacks of this process's subscriptions (run on the spin thread)."""
+
+    def __init__(self, num_nodes: int) -> None:
+        self.num_nodes = num_nodes
+        self.lock = threading.Lock()
+        self.diags: list[DiagRecord] = []
+        self.sets: dict[int, OrientationSet] = {}
+
+    def on_orientation(self, msg: Any) -> None:
+        now = time.monotonic()
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        r = msg.transform.rotation
+        with self.lock:
+            s = self.sets.get(stamp)
+            if s is None:
+                s = self.sets[stamp] = OrientationSet(t_first=now)
+            s.quats[msg.child_frame_id] = (r.x, r.y, r.z, r.w)
+            if math.isnan(s.t_complete) and len(s.quats) >= self.num_nodes:
+                s.t_complete = now
+
+    def on_diagnostics(self, msg: Any) -> None:
+        now = time.monotonic()
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        for st in msg.status:
+            if st.name != DIAG_NAME:
+                continue
+            rec = DiagRecord(now, stamp, int.from_bytes(st.level, "little")
+                             if isinstance(st.level, bytes) else int(st.level),
+                             st.message, {kv.key: kv.value for kv in st.values})
+            with self.lock:
+                self.diags.append(rec)
+
+
+def stop_process(proc: subprocess.Popen[bytes], timeout: float) -> str:
+    if proc.poll() is not None:
+        return f"already exited (rc {proc.returncode})"
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=timeout)
+        return f"exited after SIGINT (rc {proc.returncode})"
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=10)
+        return f"KILLED after {timeout:g} s without exiting on SIGINT"
+
+
+def tail(path: Path, lines: int = 30) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return "(no log)"
+
+
+def fmt_pf(ok: bool) -> str:
+    return "PASS" if ok else "FAIL"
+
+
+# ---------------------------------------------------------------------- main
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--nodes", type=int, default=1000)
+    p.add_argument("--rate", type=float, default=2000.0, help="edges per second")
+    p.add_argument("--edges", type=int, default=20000, help="total measurements streamed")
+    p.add_argument("--solve-period", type=float, default=1.0, help="node's solve_period (s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--noise-deg", type=float, default=1.0,
+                   help="per-axis std of the edge noise (mean angle ~1.6x)")
+    p.add_argument("--outliers", type=float, default=0.05,
+                   help="fraction of non-chain edges replaced by random rotations")
+    p.add_argument("--extra-node-args", default=DEFAULT_EXTRA_NODE_ARGS,
+                   help="extra node arguments after '--ros-args' (one shell-quoted string; "
+                        "pass it as --extra-node-args='...')")
+    p.add_argument("--domain-id", type=int, default=None,
+                   help="ROS_DOMAIN_ID (default: 100 + pid %% 100)")
+    p.add_argument("--tolerance", type=float, default=0.25,
+                   help="latency allowance (s) for DDS transport, the node's publication of "
+                        "the orientations and this process's executor")
+    p.add_argument("--match-timeout", type=float, default=60.0,
+                   help="wait this long for the node to start and the topics to match")
+    p.add_argument("--drain-timeout", type=float, default=15.0,
+                   help="after the first final-looking diagnostics, wait this long for "
+                        "received == sent")
+    p.add_argument("--hard-timeout", type=float, default=900.0,
+                   help="abort the whole run (and kill the node) after this many seconds")
+    p.add_argument("--node-bin", default=str(REPO_ROOT / ".venv/bin/rotavg_node"))
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    t_start = time.monotonic()
+    deadline = t_start + args.hard_timeout
+    domain_id = args.domain_id if args.domain_id is not None else 100 + os.getpid() % 100
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ["ROS_DOMAIN_ID"] = str(domain_id)
+
+    graph = make_graph(args.nodes, args.edges, args.seed, args.noise_deg, args.outliers)
+    E = graph.i.size
+    mean_degree = 2.0 * graph.num_pairs / args.nodes
+    print(f"graph: {args.nodes} nodes, {E} measurements on {graph.num_pairs} distinct pairs "
+          f"(chain + random), mean degree {mean_degree:.1f} -> node mode auto picks "
+          f"{'dense DMF' if mean_degree >= 10 else 'sparse'} on the full graph; "
+          f"noise {args.noise_deg:g} deg/axis, {int(graph.outlier.sum())} gross outliers "
+          f"({args.outliers:.0%} of non-chain edges), seed {args.seed}")
+
+    extra = shlex.split(args.extra_node_args)
+    node_cmd = [
+        args.node_bin, "--ros-args",
+        "-p", f"solve_period:={args.solve_period}",
+        "-p", f"orientations_qos_depth:={max(10000, 2 * args.nodes)}",
+        *extra,
+    ]
+    if args.extra_node_args == DEFAULT_EXTRA_NODE_ARGS:
+        print(f"NOTE: node runs with the benchmark's default extra args {extra}: a solve with "
+              "the node's default iterations (1000 per depth, depths 2,4,6,8) of this graph "
+              "takes about a minute on a 2-core machine; pass --extra-node-args='' for the "
+              "node's defaults")
+    print(f"node: {shlex.join(node_cmd)}")
+    print(f"env: ROS_DOMAIN_ID={domain_id} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST")
+
+    log_fd, log_name = tempfile.mkstemp(prefix="bench_rotavg_node_", suffix=".log")
+    log_path = Path(log_name)
+    env = dict(os.environ)
+    env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)  # let the child bootstrap itself
+    proc = subprocess.Popen(node_cmd, env=env, stdout=log_fd, stderr=subprocess.STDOUT,
+                            stdin=subprocess.DEVNULL, start_new_session=True)
+    os.close(log_fd)
+
+    def watchdog() -> None:
+        print(f"HARD TIMEOUT after {args.hard_timeout:g} s: killing the node", flush=True)
+        try:
+            proc.kill()
+        finally:
+            os._exit(3)
+
+    timer = threading.Timer(args.hard_timeout, watchdog)
+    timer.daemon = True
+    timer.start()
+
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import TransformStamped
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    node = rclpy.create_node("bench_node_stream", context=ctx)
+    obs = Observer(args.nodes)
+
+    def qos(depth: int) -> QoSProfile:
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                          reliability=ReliabilityPolicy.RELIABLE)
+
+    pub = node.create_publisher(TransformStamped, f"/{NODE_NAME}/edges", qos(max(E, 1000)))
+    sub_o = node.create_subscription(TransformStamped, f"/{NODE_NAME}/orientations",
+                                     obs.on_orientation, qos(max(10000, 4 * args.nodes)))
+    sub_d = node.create_subscription(DiagnosticArray, "/diagnostics", obs.on_diagnostics,
+                                     qos(1000))
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set() and ctx.ok():
+            ex.spin_once(timeout_sec=0.05)
+
+    spinner = threading.Thread(target=spin, name="spin", daemon=True)
+    spinner.start()
+
+    rc = 1
+    samples: dict[str, ProcSample | None] = {}
+    try:
+        # ------------------------------------------------------------ wait for matching
+        t_launch = time.monotonic()
+        while time.monotonic() < min(deadline, t_launch + args.match_timeout):
+            if proc.poll() is not None:
+                raise RuntimeError(f"node exited (rc {proc.returncode}):\n{tail(log_path)}")
+            if (pub.get_subscription_count() >= 1 and sub_o.get_publisher_count() >= 1
+                    and sub_d.get_publisher_count() >= 1):
+                break
+            time.sleep(0.05)
+        else:
+            raise RuntimeError(f"topics did not match within {args.match_timeout:g} s:\n"
+                               f"{tail(log_path)}")
+        print(f"matched {time.monotonic() - t_launch:.2f} s after the node was launched")
+        time.sleep(0.5)  # let the reliable writer/reader finish their handshake
+        samples["start"] = proc_sample(proc.pid)
+
+        # ------------------------------------------------------------ build messages
+        quats = matrix_to_quat(graph.R)
+        msgs = []
+        for k in range(E):
+            m = TransformStamped()
+            m.header.frame_id = graph.ids[graph.i[k]]
+            m.child_frame_id = graph.ids[graph.j[k]]
+            r = m.transform.rotation
+            r.x, r.y, r.z, r.w = (float(v) for v in quats[k])
+            msgs.append(m)
+
+        # ------------------------------------------------------------ stream
+        clock = node.get_clock()
+        period = 1.0 / args.rate
+        max_lag = 0.0
+        t0 = time.monotonic()
+        t_first = t_last = t0
+        t_last_wall_ns = 0
+        for k, m in enumerate(msgs):
+            target = t0 + k * period
+            now = time.monotonic()
+            if target > now:
+                time.sleep(target - now)
+            else:
+                max_lag = max(max_lag, now - target)
+            m.header.stamp = clock.now().to_msg()
+            if k == E - 1:
+                t_last_wall_ns = time.time_ns()
+                t_last = time.monotonic()
+            elif k == 0:
+                t_first = time.monotonic()
+            pub.publish(m)
+        t_after = time.monotonic()
+        samples["streamed"] = proc_sample(proc.pid)
+        span = t_last - t_first
+        achieved = (E - 1) / span if span > 0 else math.inf
+        print(f"sent {E} edges in {span:.3f} s: achieved {achieved:.1f} edges/s "
+              f"(target {args.rate:g}); max lag behind schedule {max_lag * 1e3:.1f} ms; "
+              f"last publish call took {(t_after - t_last) * 1e3:.2f} ms")
+
+        # ------------------------------------------------------------ wait for the final solve
+        final: DiagRecord | None = None
+        latest: DiagRecord | None = None
+        first_final_looking = math.nan
+        while time.monotonic() < deadline:
+            if proc.poll() is not None:
+                raise RuntimeError(f"node exited (rc {proc.returncode}):\n{tail(log_path)}")
+            with obs.lock:
+                diags = list(obs.diags)
+            if diags:
+                latest = diags[-1]
+            for d in diags:
+                if d.stamp_ns < t_last_wall_ns:
+                    continue
+                if d.num("solved_version") != d.num("graph_version"):
+                    continue
+                if math.isnan(first_final_looking):
+                    first_final_looking = time.monotonic()
+                if int(d.num("edges_received", -1)) == E:
+                    final = d
+                    break
+            if final is not None:
+                break
+            if (not math.isnan(first_final_looking)
+                    and time.monotonic() > first_final_looking + args.drain_timeout):
+                break
+            time.sleep(0.02)
+
+        # ------------------------------------------------------------ counters
+        rec = final or latest
+        print()
+        print("== edges (from /diagnostics) ==")
+        if rec is None:
+            print("no diagnostics received")
+            lost_ok = False
+        else:
+            received = int(rec.num("edges_received", -1))
+            accepted = int(rec.num("edges_accepted", -1))
+            rejected = int(rec.num("edges_rejected", -1))
+            lost_ok = received == E and accepted + rejected == E
+            print(f"sent {E}  received {received}  accepted {accepted}  rejected {rejected}")
+            reasons = {k: v for k, v in rec.values.items()
+                       if k not in ("edges_rejected",) and v not in ("0", "0.0")
+                       and k in ("zero_quaternion", "non_unit_quaternion", "non_finite",
+                                 "self_loop", "reserved_frame_id", "empty_frame_id",
+                                 "invalid_measurement")}
+            if reasons:
+                print(f"rejection reasons: {reasons}")
+            print(f"no edge lost (received == sent and accepted + rejected == sent): "
+                  f"{fmt_pf(lost_ok)}")
+
+        # ------------------------------------------------------------ latency
+        print()
+        print("== end-to-end latency (last edge sent -> complete orientations received) ==")
+        latency_ok = False
+        accuracy_ok = False
+        if final is None:
+            print("no solve including the last edge was seen before the timeout: FAIL")
+        else:
+            # Orientations precede the diagnostics of the same solve; allow a moment anyway.
+            oset: OrientationSet | None = None
+            t_wait = time.monotonic() + 10.0
+            while time.monotonic() < min(deadline, t_wait):
+                with obs.lock:
+                    s = obs.sets.get(final.stamp_ns)
+                    if s is not None and not math.isnan(s.t_complete):
+                        oset = s
+                        break
+                time.sleep(0.02)
+            solve_s = final.num("last_solve_duration_s")
+            budget = args.solve_period + solve_s
+            wait_s = (final.stamp_ns - t_last_wall_ns) / 1e9
+            with obs.lock:
+                diags = list(obs.diags)
+            busy = [d for d in diags if d.stamp_ns < t_last_wall_ns and d.t_recv > t_last
+                    and d.num("solves_completed") >= 1 and "solved_version" in d.values]
+            print(f"final solve: stamp - last send = {wait_s:.3f} s (wait for the timer"
+                  f"{' and the running solve' if busy else ''}), "
+                  f"solve {solve_s:.3f} s, depth {rec.values.get('depth', '?')}, "
+                  f"solves completed {rec.values.get('solves_completed', '?')}, "
+                  f"timer ticks skipped busy {rec.values.get('timer_ticks_skipped_busy', '?')}")
+            if busy:
+                b = busy[0]
+                print(f"a solve was running when the last edge was sent (started "
+                      f"{(t_last_wall_ns - b.stamp_ns) / 1e9:.3f} s before it, lasted "
+                      f"{b.num('last_solve_duration_s'):.3f} s); the final solve could only "
+                      f"start at the first timer tick after it ended")
+            if oset is None:
+                print("orientations of the final solve incomplete or missing: FAIL")
+            else:
+                latency = oset.t_complete - t_last
+                pub_s = oset.t_complete - oset.t_first
+                print(f"latency {latency:.3f} s   vs   solve_period + last solve duration = "
+                      f"{args.solve_period:.3f} + {solve_s:.3f} = {budget:.3f} s "
+                      f"(+ {args.tolerance:g} s tolerance for DDS transport and publication "
+                      f"of {args.nodes} messages)")
+                print(f"  (publish -> receive of the {args.nodes} orientations took "
+                      f"{pub_s:.3f} s; first orientation arrived "
+                      f"{oset.t_first - t_last - wait_s - solve_s:+.3f} s after "
+                      f"stamp + solve)")
+                latency_ok = latency <= budget + args.tolerance
+                print(f"latency <= one timer period + solve time (+{args.tolerance:g} s): "
+                      f"{fmt_pf(latency_ok)}")
+
+                # ---------------------------------------------------- accuracy
+                print()
+                print("== accuracy vs synthetic ground truth (gauge-aligned, "
+                      "rotavg_ros.metrics.evaluate) ==")
+                est = {k: quat_to_matrix(np.asarray(q)).T for k, q in oset.quats.items()}
+                stats = evaluate(est, graph.gt)
+                print(f"nodes compared {stats.num_nodes}/{args.nodes}: mean "
+                      f"{stats.mean_deg:.3f} deg, median {stats.median_deg:.3f} deg, max "
+                      f"{stats.max_deg:.3f} deg")
+                print(f"node diagnostics: residual median "
+                      f"{rec.num('residual_median_deg'):.3f} deg, filtered outliers "
+                      f"{rec.values.get('filtered_outliers', '?')} (injected "
+                      f"{int(graph.outlier.sum())}), components "
+                      f"{rec.values.get('components', '?')}, level {rec.level} "
+                      f"({rec.message})")
+                accuracy_ok = stats.num_nodes == args.nodes
+
+        # ------------------------------------------------------------ CPU / RSS
+        samples["end"] = proc_sample(proc.pid)
+        print()
+        print(f"== node process (pid {proc.pid}) CPU / memory (/proc) ==")
+        s0, s1, s2 = samples.get("start"), samples.get("streamed"), samples.get("end")
+        if s0 and s1 and s2:
+            print(f"CPU before streaming (start-up, imports): {s0.cpu_s:.2f} s")
+            d1 = s1.t - s0.t
+            print(f"CPU while streaming: {s1.cpu_s - s0.cpu_s:.2f} s in {d1:.2f} s "
+                  f"({100 * (s1.cpu_s - s0.cpu_s) / d1:.0f}% of one core)")
+            d2 = s2.t - s1.t
+            print(f"CPU after streaming until the final result: {s2.cpu_s - s1.cpu_s:.2f} s "
+                  f"in {d2:.2f} s ({100 * (s2.cpu_s - s1.cpu_s) / max(d2, 1e-9):.0f}% of one "
+                  f"core)")
+            print(f"RSS: {s0.rss_mb:.0f} MiB before streaming, {s1.rss_mb:.0f} MiB after, "
+                  f"{s2.rss_mb:.0f} MiB at the end; peak VmHWM {s2.hwm_mb:.0f} MiB; "
+                  f"threads {s2.threads}")
+        else:
+            print("could not read /proc for the node")
+
+        print()
+        print(f"SUMMARY: no edge lost {fmt_pf(lost_ok)}; latency {fmt_pf(latency_ok)}; "
+              f"orientations complete {fmt_pf(accuracy_ok)}; "
+              f"wall time {time.monotonic() - t_start:.1f} s")
+        rc = 0 if (lost_ok and latency_ok and accuracy_ok) else 1
+    except RuntimeError as exc:
+        print(f"ERROR: {exc}")
+        rc = 2
+    finally:
+        stop.set()
+        spinner.join(timeout=5)
+        ex.shutdown()
+        node.destroy_node()
+        ctx.try_shutdown()
+        how = stop_process(proc, timeout=15.0)
+        print(f"node shutdown: {how}")
+        if proc.returncode not in (0, -signal.SIGINT, 130) or rc == 2:
+            print(f"node log tail ({log_path}):\n{tail(log_path)}")
+        else:
+            log_path.unlink(missing_ok=True)
+        timer.cancel()
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())
