@@ -230,6 +230,10 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
         "Spanning-tree filter threshold on the chordal distance d_chord(R_ij, R_ij^tree).",
         fp_range=(0.0, 2.83)),
     "seed": _descriptor("Random seed of the solver.", int_range=(0, 2**31 - 1)),
+    "warm_start": _descriptor(
+        "Warm-start each re-solve from the previous solution (known nodes keep their "
+        "rotation, new ones start from the spanning tree; dense mode then runs a short "
+        "fit at the previous depth)."),
     "device": _descriptor(
         "Torch device of the solver, e.g. cpu or cuda:0.", constraints="torch device string"),
     "threads": _descriptor(
@@ -467,7 +471,7 @@ class RotavgNode(Node):
                 return SolveOutcome(True, "graph unchanged")
             self._last_attempted_version = snap.version
         stamp = self.get_clock().now().to_msg()
-        attempt = solve_snapshot(snap, settings, self._solve_fn)
+        attempt = solve_snapshot(snap, settings, self._solve_fn, self._book.last_result)
         if attempt.status == SOLVED:
             with self._publish_lock:
                 if self._acc.generation != snap.generation:

@@ -72,6 +72,7 @@ PARAMETER_DEFAULTS: dict[str, Any] = {
     "iterations": _SOLVER_DEFAULTS.iterations,
     "sigma": _SOLVER_DEFAULTS.sigma,
     "seed": 0,
+    "warm_start": True,
     "device": "cpu",
     "threads": 0,
     "publish_markers": True,
@@ -132,6 +133,7 @@ class Settings:
     residual_warn_deg: float
     adapter: AdapterConfig
     solver: SolverOptions
+    warm_start: bool = True
 
 
 def solver_options_from_parameters(p: Mapping[str, Any]) -> SolverOptions:
@@ -181,6 +183,7 @@ def settings_from_parameters(
             reserved_frames=frozenset({str(p["world_frame"])}),
         ),
         solver=solver if solver is not None else solver_options_from_parameters(p),
+        warm_start=bool(p["warm_start"]),
     )
 
 
@@ -198,6 +201,19 @@ def default_solve(graph: ViewGraph, anchor: Hashable | None, options: SolverOpti
     from rotavg_ros.solver import RotationAverager
 
     return RotationAverager(options).solve(graph, anchor=anchor)
+
+
+def _warm_solver(previous: SolveResult) -> SolveFn:
+    """A :data:`SolveFn` warm-started from ``previous`` (its rotations and depth)."""
+    initial = dict(zip(previous.node_ids, previous.rotations, strict=True))
+
+    def solve(graph: ViewGraph, anchor: Hashable | None, options: SolverOptions) -> SolveResult:
+        from rotavg_ros.solver import RotationAverager
+
+        return RotationAverager(options).solve(
+            graph, anchor=anchor, initial=initial, initial_depth=previous.depth or None)
+
+    return solve
 
 
 # ---------------------------------------------------------------------- solving
@@ -253,10 +269,13 @@ def choose_anchor(graph: ViewGraph, first_node: Hashable | None,
 
 
 def solve_snapshot(
-    snap: GraphSnapshot, settings: Settings, solve_fn: SolveFn | None = None
+    snap: GraphSnapshot, settings: Settings, solve_fn: SolveFn | None = None,
+    previous: SolveResult | None = None,
 ) -> SolveAttempt:
     """Choose the anchor and solve ``snap.graph`` with ``settings.solver``.
 
+    With ``settings.warm_start`` and a ``previous`` result (and the default solver), the
+    solve is warm-started from it (:meth:`RotationAverager.solve`'s ``initial``).
     Never raises for a solver error: that is ``status == "failed"`` with the exception text.
     """
     graph = snap.graph
@@ -266,6 +285,8 @@ def solve_snapshot(
     if warning:
         return SolveAttempt(ANCHOR_MISSING, anchor_warning=warning)
     fn = solve_fn if solve_fn is not None else default_solve
+    if solve_fn is None and settings.warm_start and previous is not None:
+        fn = _warm_solver(previous)
     t0 = time.perf_counter()
     try:
         result = fn(graph, anchor, settings.solver)

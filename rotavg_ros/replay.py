@@ -582,7 +582,7 @@ class Replayer:
     def _solve(self, stamp_ns: int) -> None:
         snap = self.acc.snapshot()
         self.last_attempted_version = snap.version
-        attempt = solve_snapshot(snap, self.settings, self.solve_fn)
+        attempt = solve_snapshot(snap, self.settings, self.solve_fn, self.book.last_result)
         self.book.record(attempt, snap.version)
         record = SolveRecord(len(self.report.solves) + 1, stamp_ns, attempt)
         self.report.solves.append(record)
@@ -751,6 +751,9 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     node.add_argument("--min-weight", type=float, default=1e-3)
     node.add_argument("--max-weight", type=float, default=1e3)
     node.add_argument("--no-markers", action="store_true")
+    node.add_argument("--no-warm-start", action="store_true",
+                      help="solve every period from scratch (default: warm-start each solve "
+                      "from the previous one, as the node does)")
     node.add_argument("--marker-spacing", type=float, default=1.0)
     node.add_argument("--residual-warn-deg", type=float, default=5.0)
     add_solver_arguments(p)
@@ -782,6 +785,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
         "marker_spacing": args.marker_spacing,
         "residual_warn_deg": args.residual_warn_deg,
         "mode": args.mode,
+        "warm_start": not args.no_warm_start,
         "depths": list(options.depths),
     }
     if args.reference_variance is not None:

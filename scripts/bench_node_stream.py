@@ -63,9 +63,12 @@ from rotavg_ros.so3 import matrix_to_quat, quat_to_matrix, random_rotations  # n
 NODE_NAME = "rotavg_node"
 DIAG_NAME = f"{NODE_NAME}: rotation averaging"
 # Node parameters this benchmark passes unless --extra-node-args overrides them (later -p
-# wins). A default solve (4 depths x 1000 Adam iterations) of the default graph takes about
-# a minute on a 2-core machine, so the benchmark runs the dense DMF with fewer iterations.
-DEFAULT_EXTRA_NODE_ARGS = "-p iterations:=300"
+# wins). Measured offline on a shared 2-core machine with the default graph (1000 nodes,
+# 20,000 edges, dense DMF): the node's defaults (depths 2,4,6,8 x 1000 Adam iterations) did
+# not finish one solve in 10 min; depths [2, 4] x 300 iterations took 81 s; depth 2 alone
+# takes 4-25 s (300-1000 iterations) and 300 iterations is already converged (0.37 deg mean
+# error). So the benchmark runs the dense DMF at depth 2 with 300 iterations by default.
+DEFAULT_EXTRA_NODE_ARGS = "-p depths:=[2] -p iterations:=300"
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
@@ -270,6 +273,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "received == sent")
     p.add_argument("--hard-timeout", type=float, default=900.0,
                    help="abort the whole run (and kill the node) after this many seconds")
+    p.add_argument("--verbose", action="store_true",
+                   help="print the timeline of the node's diagnostics")
     p.add_argument("--node-bin", default=str(REPO_ROOT / ".venv/bin/rotavg_node"))
     return p.parse_args(argv)
 
@@ -299,10 +304,11 @@ def main(argv: list[str] | None = None) -> int:
         *extra,
     ]
     if args.extra_node_args == DEFAULT_EXTRA_NODE_ARGS:
-        print(f"NOTE: node runs with the benchmark's default extra args {extra}: a solve with "
-              "the node's default iterations (1000 per depth, depths 2,4,6,8) of this graph "
-              "takes about a minute on a 2-core machine; pass --extra-node-args='' for the "
-              "node's defaults")
+        print(f"NOTE: the node runs with the benchmark's default extra args {extra}, not the "
+              "node's solver defaults (depths 2,4,6,8 x 1000 iterations): one solve of the "
+              "default graph with those did not finish in 10 min on a shared 2-core machine "
+              "(depth 2 x 300 iterations: ~4 s). Pass --extra-node-args='' for the node's "
+              "defaults.")
     print(f"node: {shlex.join(node_cmd)}")
     print(f"env: ROS_DOMAIN_ID={domain_id} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST")
 
@@ -373,8 +379,22 @@ def main(argv: list[str] | None = None) -> int:
             raise RuntimeError(f"topics did not match within {args.match_timeout:g} s:\n"
                                f"{tail(log_path)}")
         print(f"matched {time.monotonic() - t_launch:.2f} s after the node was launched")
-        time.sleep(0.5)  # let the reliable writer/reader finish their handshake
-        samples["start"] = proc_sample(proc.pid)
+        # The node imports the solver (torch) on its worker thread at start-up; wait until it
+        # is idle so that the stream measures the steady state, not the start-up.
+        prev = proc_sample(proc.pid)
+        t_idle = time.monotonic()
+        while time.monotonic() < min(deadline, t_idle + args.match_timeout):
+            time.sleep(0.5)
+            cur = proc_sample(proc.pid)
+            if prev is None or cur is None:
+                raise RuntimeError(f"node process vanished:\n{tail(log_path)}")
+            busy_frac = (cur.cpu_s - prev.cpu_s) / (cur.t - prev.t)
+            prev = cur
+            if busy_frac < 0.1:
+                break
+        print(f"node idle {time.monotonic() - t_launch:.2f} s after launch "
+              f"(start-up CPU {prev.cpu_s:.2f} s)")
+        samples["start"] = prev
 
         # ------------------------------------------------------------ build messages
         quats = matrix_to_quat(graph.R)
@@ -443,6 +463,20 @@ def main(argv: list[str] | None = None) -> int:
                     and time.monotonic() > first_final_looking + args.drain_timeout):
                 break
             time.sleep(0.02)
+
+        if args.verbose:
+            with obs.lock:
+                diags = list(obs.diags)
+            print()
+            print("diagnostics timeline (recv s after last send, stamp s after last send, "
+                  "received, graph_version, solved_version, last_solve_duration_s, "
+                  "skipped busy):")
+            for d in diags:
+                print(f"  {d.t_recv - t_last:+8.3f} {(d.stamp_ns - t_last_wall_ns) / 1e9:+8.3f} "
+                      f"{d.values.get('edges_received')} {d.values.get('graph_version')} "
+                      f"{d.values.get('solved_version')} "
+                      f"{d.values.get('last_solve_duration_s')} "
+                      f"{d.values.get('timer_ticks_skipped_busy')}")
 
         # ------------------------------------------------------------ counters
         rec = final or latest

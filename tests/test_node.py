@@ -548,6 +548,9 @@ def test_console_script_answers_over_dds(ros: RosHarness) -> None:  # noqa: F811
         assert wait_until(lambda: len(client.latest_orientations()) == 5, 60.0)
         response = client.solve(timeout=120.0)
         assert response.success, response.message
+        # The answer and the orientations travel on different channels: wait for the whole
+        # latest set before scoring it.
+        assert wait_until(lambda: len(client.latest_orientations()) == 5, 30.0)
         assert {m.header.frame_id for m in client.orientations} == {"proc_world"}
         assert aligned_errors_deg(client.latest_orientations(), gt).max() < 1.0
     finally:
