@@ -24,6 +24,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from rotavg_ros import peers
 from rotavg_ros.datasets import (
     SE_SYNC_GRAPHS,
@@ -37,6 +39,7 @@ from rotavg_ros.solver import RotationAverager
 from rotavg_ros.solver_types import SolverOptions
 
 GRAPHS = ("ellis", *SE_SYNC_GRAPHS)
+OURS = "filtered-DMF (ours)"
 ABLATIONS: dict[str, dict[str, Any]] = {
     "(a) w/o edge filter": {"use_filter": False},
     "(b) w/o support count": {"use_support_count": False},
@@ -56,6 +59,7 @@ class Row:
     wall_s: float
     peak_rss_mb: float
     note: str = ""
+    errors: list[float] | None = None
 
 
 def load(shared: Path, name: str) -> Benchmark:
@@ -76,9 +80,10 @@ def _run_ours(shared: Path, name: str, overrides: dict[str, Any], q: Any) -> Non
         stats = evaluate(dict(zip(result.node_ids, result.rotations, strict=True)),
                          bench.reference)
         note = f"depth {result.depth}, {result.num_filtered} filtered"
-        q.put(("ok", stats.mean_deg, stats.median_deg, wall, _peak_rss_mb(), note))
+        q.put(("ok", stats.mean_deg, stats.median_deg, wall, _peak_rss_mb(), note,
+               stats.errors.tolist()))
     except Exception as exc:  # reported as a row, the benchmark goes on
-        q.put(("error", 0.0, 0.0, 0.0, _peak_rss_mb(), f"{type(exc).__name__}: {exc}"))
+        q.put(("error", 0.0, 0.0, 0.0, _peak_rss_mb(), f"{type(exc).__name__}: {exc}", None))
 
 
 def _run_peer(shared: Path, name: str, peer: str, q: Any) -> None:
@@ -87,9 +92,10 @@ def _run_peer(shared: Path, name: str, peer: str, q: Any) -> None:
         e = bench.graph.edge_arrays()
         rot, wall = peers.PEERS[peer](bench.graph.num_nodes, e.i, e.j, e.R, e.weight)
         stats = evaluate(dict(zip(bench.graph.node_ids, rot, strict=True)), bench.reference)
-        q.put(("ok", stats.mean_deg, stats.median_deg, wall, _peak_rss_mb(), ""))
+        q.put(("ok", stats.mean_deg, stats.median_deg, wall, _peak_rss_mb(), "",
+               stats.errors.tolist()))
     except Exception as exc:
-        q.put(("error", 0.0, 0.0, 0.0, _peak_rss_mb(), f"{type(exc).__name__}: {exc}"))
+        q.put(("error", 0.0, 0.0, 0.0, _peak_rss_mb(), f"{type(exc).__name__}: {exc}", None))
 
 
 def run_child(target: Any, args: tuple[Any, ...], timeout: float) -> tuple[Any, ...]:
@@ -102,7 +108,7 @@ def run_child(target: Any, args: tuple[Any, ...], timeout: float) -> tuple[Any, 
         out = q.get(timeout=timeout)
     except Exception:
         proc.kill()
-        out = ("error", 0.0, 0.0, 0.0, 0.0, f"timeout after {timeout:.0f} s")
+        out = ("error", 0.0, 0.0, 0.0, 0.0, f"timeout after {timeout:.0f} s", None)
     proc.join()
     return tuple(out)
 
@@ -129,6 +135,63 @@ def format_table(rows: list[Row]) -> str:
     return "\n".join(out)
 
 
+def format_ratios(rows: list[Row]) -> str:
+    """Ours vs each peer, per dataset: time ratio and error ratios (< 1: ours is better)."""
+    out = ["| dataset | peer | time ours/peer | mean err ours/peer | median err ours/peer |",
+           "|---|---|---|---|---|"]
+    ours = {r.dataset: r for r in rows if r.method == OURS and r.errors is not None}
+    for r in rows:
+        o = ours.get(r.dataset)
+        if o is None or r.method not in peers.PEER_NAMES or r.errors is None:
+            continue
+        out.append(f"| {r.dataset} | {r.method} | {o.wall_s / max(r.wall_s, 1e-9):.2f} | "
+                   f"{o.mean_deg / max(r.mean_deg, 1e-12):.2f} | "
+                   f"{o.median_deg / max(r.median_deg, 1e-12):.2f} |")
+    return "\n".join(out)
+
+
+def write_plots(rows: list[Row], folder: Path) -> list[Path]:
+    """Error CDF per dataset and wall time against graph size (needs matplotlib)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for dataset in dict.fromkeys(r.dataset for r in rows):
+        fig, ax = plt.subplots(figsize=(5, 3.5))
+        for r in rows:
+            if r.dataset == dataset and r.errors:
+                e = np.sort(np.asarray(r.errors))
+                ax.plot(e, np.arange(1, e.size + 1) / e.size, label=r.method)
+        ax.set_xscale("log")
+        ax.set_xlabel("angular error (deg)")
+        ax.set_ylabel("fraction of nodes")
+        ax.set_title(dataset)
+        ax.legend(fontsize=7)
+        path = folder / f"cdf_{dataset.replace(' ', '_')}.png"
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for method in dict.fromkeys(r.method for r in rows if r.errors):
+        pts = sorted((r.nodes, r.wall_s) for r in rows if r.method == method and r.errors)
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=method)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("nodes")
+    ax.set_ylabel("wall time (s)")
+    ax.legend(fontsize=7)
+    path = folder / "time_vs_size.png"
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+    return written
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m rotavg_ros.benchmark", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -138,6 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ablations", action="store_true", help="Table II ablations on Ellis")
     p.add_argument("--timeout", type=float, default=900.0, help="per run, seconds")
     p.add_argument("--markdown", help="also write the table to this file")
+    p.add_argument("--plots", help="folder for PNG plots (error CDFs, time vs size; "
+                   "needs matplotlib from requirements-bench.txt)")
     args = p.parse_args(argv)
     shared = find_shared_dir()
     if shared is None:
@@ -153,15 +218,14 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         bench = load(shared, name)
         n, m = bench.graph.num_nodes, bench.graph.edge_arrays().num_edges
-        runs: list[tuple[str, Any, tuple[Any, ...]]] = [("filtered-DMF (ours)", _run_ours,
-                                                          (shared, name, {}))]
+        runs: list[tuple[str, Any, tuple[Any, ...]]] = [(OURS, _run_ours, (shared, name, {}))]
         if name == "ellis" and args.ablations:
             runs += [(f"ours {k}", _run_ours, (shared, name, v)) for k, v in ABLATIONS.items()]
         runs += [(peer, _run_peer, (shared, name, peer)) for peer, ok in available.items() if ok]
         for method, target, targs in runs:
-            status, mean, med, wall, rss, note = run_child(target, targs, args.timeout)
+            status, mean, med, wall, rss, note, errors = run_child(target, targs, args.timeout)
             row = Row(bench.name, n, m, method, mean, med, wall, rss,
-                      note if status == "ok" else f"error: {note}")
+                      note if status == "ok" else f"error: {note}", errors)
             rows.append(row)
             print(format_table([row]).splitlines()[-1], flush=True)
         if name == "ellis":
@@ -169,9 +233,14 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(Row(bench.name, n, m, f"paper: {method}", mean, med, 0.0, 0.0,
                                 "Table I, not run here"))
     table = format_table(rows)
+    if available:
+        table += "\n\n" + format_ratios(rows)
     print("\n" + table)
     if args.markdown:
         Path(args.markdown).write_text(table + "\n")
+    if args.plots:
+        for path in write_plots(rows, Path(args.plots)):
+            print(f"wrote {path}")
     return 0
 
 

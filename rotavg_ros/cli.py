@@ -1,4 +1,4 @@
-"""Command line: ``rotavg solve | evaluate | replay`` (``python -m rotavg_ros`` is the same).
+"""Command line: ``rotavg solve | evaluate | replay | bench`` (also ``python -m rotavg_ros``).
 
 Output g2o files hold one ``VERTEX_SE3:QUAT id 0 0 0 qx qy qz qw`` per node with the
 **node-to-world** quaternion (g2o's vertex convention), i.e. the transpose of our
@@ -126,6 +126,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from rotavg_ros.benchmark import main as bench_main
+
+    return bench_main(list(args.bench_args))
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rotavg", description="Filtered-DMF rotation averaging")
     sub = p.add_subparsers(dest="command", required=True)
@@ -141,13 +147,21 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("estimate", help=".g2o written by 'rotavg solve'")
     e.add_argument("ground_truth", help="1DSfM .npz with R_gt, or a .npz with R_ref / R_gt")
     e.set_defaults(func=cmd_evaluate)
+    b = sub.add_parser("bench", add_help=False,
+                       help="benchmark on the shared data (python -m rotavg_ros.benchmark)")
+    b.add_argument("bench_args", nargs=argparse.REMAINDER)
+    b.set_defaults(func=cmd_bench)
     register_replay(sub)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if args.command == "bench":  # everything after 'bench' belongs to the benchmark
+        args.bench_args = [*args.bench_args, *extra]
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return int(args.func(args))
     except InputError as exc:
