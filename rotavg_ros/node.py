@@ -131,7 +131,7 @@ from rotavg_ros.pipeline import (
     SolveAttempt,
     SolveBookkeeping,
     SolveFn,
-    default_solve,
+    SubprocessSolver,
     diagnostic_name,
     diagnostic_values,
     make_accumulator,
@@ -230,6 +230,10 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
         "Spanning-tree filter threshold on the chordal distance d_chord(R_ij, R_ij^tree).",
         fp_range=(0.0, 2.83)),
     "seed": _descriptor("Random seed of the solver.", int_range=(0, 2**31 - 1)),
+    "solve_in_subprocess": _descriptor(
+        "Run the solver in a child process (default) so a long solve cannot starve the "
+        "subscriptions of the interpreter lock; false runs it in the worker thread.",
+        read_only=True),
     "warm_start": _descriptor(
         "Warm-start each re-solve from the previous solution (known nodes keep their "
         "rotation, new ones start from the spanning tree; dense mode then runs a short "
@@ -238,7 +242,8 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
         "Torch device of the solver, e.g. cpu or cuda:0.", constraints="torch device string"),
     "threads": _descriptor(
         "Torch CPU threads for the solver; 0 = torch's default.", int_range=(0, 1024)),
-    "publish_markers": _descriptor("Publish ~/markers (RViz MarkerArray) after solves."),
+    "publish_markers": _descriptor(
+        "Publish ~/markers (RViz MarkerArray) after solves, when something subscribes."),
     "marker_spacing": _descriptor(
         "Grid spacing (m) of the marker layout (there are no translations to show).",
         fp_range=(0.01, 100.0)),
@@ -277,7 +282,12 @@ class RotavgNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
 
-        self._solve_fn: SolveFn = solve_fn if solve_fn is not None else default_solve
+        # Test hook, else None: the default solver runs in a child process (no GIL contention
+        # with the subscriptions) when ``solve_in_subprocess``, in the worker thread otherwise.
+        self._solve_fn: SolveFn | None = solve_fn
+        self._runner: SubprocessSolver | None = (
+            SubprocessSolver() if solve_fn is None
+            and self.get_parameter("solve_in_subprocess").value else None)
         self._acc = make_accumulator(self.get_parameter("repeat_policy").value)
 
         # Scheduling state, guarded by _sched_lock.
@@ -297,7 +307,9 @@ class RotavgNode(Node):
         self._pool = concurrent.futures.ThreadPoolExecutor(
             max_workers=1, thread_name_prefix="rotavg_solver"
         )
-        if solve_fn is None:
+        if self._runner is not None:
+            self._runner.warm_up()
+        elif solve_fn is None:
             self._pool.submit(_warm_import)
 
         self._ingest_group = MutuallyExclusiveCallbackGroup()
@@ -371,6 +383,8 @@ class RotavgNode(Node):
         with self._sched_lock:
             self._closing = True
         self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._runner is not None:
+            self._runner.close()
         super().destroy_node()
 
     # ------------------------------------------------------------------ parameters
@@ -471,7 +485,8 @@ class RotavgNode(Node):
                 return SolveOutcome(True, "graph unchanged")
             self._last_attempted_version = snap.version
         stamp = self.get_clock().now().to_msg()
-        attempt = solve_snapshot(snap, settings, self._solve_fn, self._book.last_result)
+        attempt = solve_snapshot(snap, settings, self._solve_fn, self._book.last_result,
+                                 self._runner)
         if attempt.status == SOLVED:
             with self._publish_lock:
                 if self._acc.generation != snap.generation:
@@ -496,7 +511,8 @@ class RotavgNode(Node):
             result.node_ids, result.rotations, settings.world_frame, stamp
         ):
             self._pub_orientations.publish(msg)
-        if settings.publish_markers:
+        # Markers cost about 1.5 ms per node to build in Python: only for an actual viewer.
+        if settings.publish_markers and self._pub_markers.get_subscription_count() > 0:
             self._pub_markers.publish(orientation_markers(
                 result.node_ids, result.rotations, result.component, result.anchors,
                 settings.world_frame, stamp, spacing=settings.marker_spacing,

@@ -21,9 +21,14 @@ node-to-world rotation ``R_i^T`` (``header.frame_id = world_frame``, ``child_fra
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import multiprocessing
+import threading
 import time
 from collections.abc import Callable, Hashable, Mapping
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
@@ -51,6 +56,12 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 SolveFn = Callable[[ViewGraph, Hashable | None, SolverOptions], SolveResult]
+Runner = Callable[
+    [ViewGraph, Hashable | None, SolverOptions, Mapping[Hashable, NDArray[np.float64]] | None,
+     int | None],
+    SolveResult,
+]
+"""``(graph, anchor, options, initial, initial_depth) -> SolveResult``."""
 """``(graph, anchor, options) -> SolveResult``; the default runs :class:`RotationAverager`."""
 
 NODE_NAME = "rotavg_node"
@@ -73,12 +84,13 @@ PARAMETER_DEFAULTS: dict[str, Any] = {
     "sigma": _SOLVER_DEFAULTS.sigma,
     "seed": 0,
     "warm_start": True,
+    "solve_in_subprocess": True,
     "device": "cpu",
     "threads": 0,
     "publish_markers": True,
     "marker_spacing": 1.0,
     "residual_warn_deg": 5.0,
-    "qos_depth": 1000,
+    "qos_depth": 10000,
     "orientations_qos_depth": 10000,
 }
 """Every ``rotavg_node`` parameter and its default (the node adds descriptors and ranges)."""
@@ -198,22 +210,77 @@ def make_accumulator(repeat_policy: RepeatPolicy | str = RepeatPolicy.MERGE) -> 
 
 def default_solve(graph: ViewGraph, anchor: Hashable | None, options: SolverOptions) -> SolveResult:
     """Run the filtered-DMF solver (imported lazily: it pulls in torch)."""
+    return run_solver(graph, anchor, options)
+
+
+def run_solver(
+    graph: ViewGraph, anchor: Hashable | None, options: SolverOptions,
+    initial: Mapping[Hashable, FloatArray] | None = None, initial_depth: int | None = None,
+) -> SolveResult:
+    """In-process :meth:`RotationAverager.solve`, optionally warm-started."""
     from rotavg_ros.solver import RotationAverager
 
-    return RotationAverager(options).solve(graph, anchor=anchor)
+    return RotationAverager(options).solve(
+        graph, anchor=anchor, initial=initial, initial_depth=initial_depth)
 
 
-def _warm_solver(previous: SolveResult) -> SolveFn:
-    """A :data:`SolveFn` warm-started from ``previous`` (its rotations and depth)."""
+class SubprocessSolver:
+    """Runs :func:`run_solver` in one persistent child process (spawned on first use).
+
+    A solve is Python-heavy (an optimiser loop of small torch ops); in a thread it would
+    hold the interpreter lock often enough to starve the node's subscriptions. In a child
+    process it competes only for CPU. The child keeps torch loaded between solves. If the
+    child dies, that solve raises and the next one starts a new child.
+    """
+
+    def __init__(self) -> None:
+        self._pool: ProcessPoolExecutor | None = None
+        self._lock = threading.Lock()
+
+    def _get_pool(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(
+                    max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+            return self._pool
+
+    def __call__(
+        self, graph: ViewGraph, anchor: Hashable | None, options: SolverOptions,
+        initial: Mapping[Hashable, FloatArray] | None = None,
+        initial_depth: int | None = None,
+    ) -> SolveResult:
+        pool = self._get_pool()
+        options = dataclasses.replace(options, progress=None)  # callables do not pickle
+        try:
+            return pool.submit(run_solver, graph, anchor, options,
+                               dict(initial) if initial else None, initial_depth).result()
+        except BrokenProcessPool:
+            with self._lock:
+                self._pool = None
+            raise
+
+    def warm_up(self) -> None:
+        """Start the child and import the solver there, ahead of the first solve."""
+        self._get_pool().submit(_import_solver)
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _import_solver() -> None:
+    import rotavg_ros.solver  # noqa: F401
+
+
+def _runner_fn(runner: Runner, previous: SolveResult | None) -> SolveFn:
+    """A :data:`SolveFn` that calls ``runner``, warm-started from ``previous`` if given."""
+    if previous is None:
+        return lambda graph, anchor, options: runner(graph, anchor, options, None, None)
     initial = dict(zip(previous.node_ids, previous.rotations, strict=True))
-
-    def solve(graph: ViewGraph, anchor: Hashable | None, options: SolverOptions) -> SolveResult:
-        from rotavg_ros.solver import RotationAverager
-
-        return RotationAverager(options).solve(
-            graph, anchor=anchor, initial=initial, initial_depth=previous.depth or None)
-
-    return solve
+    depth = previous.depth or None
+    return lambda graph, anchor, options: runner(graph, anchor, options, initial, depth)
 
 
 # ---------------------------------------------------------------------- solving
@@ -270,12 +337,13 @@ def choose_anchor(graph: ViewGraph, first_node: Hashable | None,
 
 def solve_snapshot(
     snap: GraphSnapshot, settings: Settings, solve_fn: SolveFn | None = None,
-    previous: SolveResult | None = None,
+    previous: SolveResult | None = None, runner: Runner | None = None,
 ) -> SolveAttempt:
     """Choose the anchor and solve ``snap.graph`` with ``settings.solver``.
 
-    With ``settings.warm_start`` and a ``previous`` result (and the default solver), the
-    solve is warm-started from it (:meth:`RotationAverager.solve`'s ``initial``).
+    ``solve_fn`` (a test hook) replaces the solver outright. Otherwise ``runner`` (default
+    :func:`run_solver`, in process; the node passes a :class:`SubprocessSolver`) solves,
+    warm-started from ``previous`` when ``settings.warm_start``.
     Never raises for a solver error: that is ``status == "failed"`` with the exception text.
     """
     graph = snap.graph
@@ -284,9 +352,8 @@ def solve_snapshot(
     anchor, warning = choose_anchor(graph, snap.first_node, settings.anchor_frame)
     if warning:
         return SolveAttempt(ANCHOR_MISSING, anchor_warning=warning)
-    fn = solve_fn if solve_fn is not None else default_solve
-    if solve_fn is None and settings.warm_start and previous is not None:
-        fn = _warm_solver(previous)
+    fn = solve_fn if solve_fn is not None else _runner_fn(
+        runner or run_solver, previous if settings.warm_start else None)
     t0 = time.perf_counter()
     try:
         result = fn(graph, anchor, settings.solver)

@@ -34,7 +34,8 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
 from msg_adapters.inputs import DEFAULT_REFERENCE_VARIANCE
-from rotavg_ros.node import PARAMETERS, RotavgNode, default_solve
+from rotavg_ros.node import PARAMETERS, RotavgNode
+from rotavg_ros.pipeline import default_solve
 from rotavg_ros.so3 import (
     geodesic_distance,
     project_to_so3,
