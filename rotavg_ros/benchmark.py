@@ -90,7 +90,9 @@ def _run_peer(shared: Path, name: str, peer: str, q: Any) -> None:
     try:
         bench = load(shared, name)
         e = bench.graph.edge_arrays()
-        rot, wall = peers.PEERS[peer](bench.graph.num_nodes, e.i, e.j, e.R, e.weight)
+        # Unweighted graphs go in unweighted (a peer's robust scale may depend on weights).
+        weight = None if np.all(e.weight == e.weight[0]) else e.weight
+        rot, wall = peers.PEERS[peer](bench.graph.num_nodes, e.i, e.j, e.R, weight)
         stats = evaluate(dict(zip(bench.graph.node_ids, rot, strict=True)), bench.reference)
         q.put(("ok", stats.mean_deg, stats.median_deg, wall, _peak_rss_mb(), "",
                stats.errors.tolist()))
