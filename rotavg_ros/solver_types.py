@@ -70,7 +70,7 @@ class SolverOptions:
     hidden_width: int | None = None
     """Width of the hidden factors; None = 3N (the paper) up to ``max_full_width_nodes``,
     ``scalable_width`` above."""
-    max_full_width_nodes: int = 1000
+    max_full_width_nodes: int = 300
     scalable_width: int = 64
     seed: int = 0
     device: str = "cpu"
