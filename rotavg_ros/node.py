@@ -84,6 +84,7 @@ first); the timer and services use a reentrant group and coordinate through a lo
 from __future__ import annotations
 
 import concurrent.futures
+import os
 import threading
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass
@@ -121,6 +122,7 @@ from rotavg_ros.accumulator import (
     EdgeMeasurement,
     Rejection,
 )
+from rotavg_ros.graph_store import load_graph, save_graph
 from rotavg_ros.pipeline import (
     FAILED,
     NO_EDGES,
@@ -230,6 +232,10 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
         "Spanning-tree filter threshold on the chordal distance d_chord(R_ij, R_ij^tree).",
         fp_range=(0.0, 2.83)),
     "seed": _descriptor("Random seed of the solver.", int_range=(0, 2**31 - 1)),
+    "graph_file": _descriptor(
+        "g2o file of the live graph (rotavg_ros.graph_store format): loaded at start when it "
+        "exists, written by ~/save_graph and on a clean shutdown; empty = no persistence.",
+        read_only=True),
     "solve_in_subprocess": _descriptor(
         "Run the solver in a child process (default) so a long solve cannot starve the "
         "subscriptions of the interpreter lock; false runs it in the worker thread.",
@@ -289,6 +295,12 @@ class RotavgNode(Node):
             SubprocessSolver() if solve_fn is None
             and self.get_parameter("solve_in_subprocess").value else None)
         self._acc = make_accumulator(self.get_parameter("repeat_policy").value)
+        self._graph_file = str(self.get_parameter("graph_file").value)
+        if self._graph_file and os.path.exists(self._graph_file):
+            stored = load_graph(self._graph_file)  # a broken file stops the start: say why
+            self._acc.add_many(stored.measurements)
+            self.get_logger().info(
+                f"loaded {len(stored.measurements)} measurements from {self._graph_file}")
 
         # Scheduling state, guarded by _sched_lock.
         self._sched_lock = threading.Lock()
@@ -343,6 +355,9 @@ class RotavgNode(Node):
         self._srv_reset = self.create_service(
             Trigger, "~/reset", self._on_reset_request, callback_group=self._control_group
         )
+        self._srv_save = self.create_service(
+            Trigger, "~/save_graph", self._on_save_request, callback_group=self._control_group
+        )
         self._wake = self.create_guard_condition(
             lambda: None, callback_group=self._control_group
         )
@@ -379,7 +394,10 @@ class RotavgNode(Node):
             return future
 
     def destroy_node(self) -> None:
-        """Stop the worker (waits for a running solve) and destroy the node."""
+        """Stop the worker (waits for a running solve), save the graph, destroy the node."""
+        if self._graph_file and self._acc.stats().accepted:
+            ok, message = self.save_graph()
+            (self.get_logger().info if ok else self.get_logger().error)(message)
         with self._sched_lock:
             self._closing = True
         self._pool.shutdown(wait=True, cancel_futures=True)
@@ -457,6 +475,25 @@ class RotavgNode(Node):
         response.success = True
         response.message = "graph and counters cleared"
         return response
+
+    def _on_save_request(
+        self, request: Trigger.Request, response: Trigger.Response
+    ) -> Trigger.Response:
+        response.success, response.message = self.save_graph()
+        return response
+
+    def save_graph(self) -> tuple[bool, str]:
+        """Write the live graph and the last orientations to ``graph_file``."""
+        if not self._graph_file:
+            return False, "graph_file parameter is empty: nowhere to save"
+        snap = self._acc.snapshot()
+        last = self._book.last_result
+        orientations = dict(zip(last.node_ids, last.rotations, strict=True)) if last else None
+        try:
+            count = save_graph(self._graph_file, snap.graph, orientations)
+        except OSError as exc:
+            return False, f"could not write {self._graph_file}: {exc}"
+        return True, f"saved {count} measurements to {self._graph_file}"
 
     def _on_job_done(self, _future: concurrent.futures.Future[SolveOutcome]) -> None:
         try:

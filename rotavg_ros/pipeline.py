@@ -85,6 +85,7 @@ PARAMETER_DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "warm_start": True,
     "solve_in_subprocess": True,
+    "graph_file": "",
     "device": "cpu",
     "threads": 0,
     "publish_markers": True,

@@ -234,6 +234,44 @@ def test_bad_messages_rejected_counted_and_node_keeps_serving(ros: RosHarness) -
     assert values["empty_frame_id"] == "2" and values["zero_quaternion"] == "1"
 
 
+# ---------------------------------------------------------------------- persistence
+def test_restart_continues_from_saved_graph(tmp_path: Path) -> None:
+    """~/save_graph writes the live graph; a node started on the file has the same edges."""
+    path = tmp_path / "live_graph.g2o"
+    gt = chain_gt(5, seed=21)
+    pairs = [("n0", "n1"), ("n1", "n2"), ("n2", "n3"), ("n3", "n4"), ("n4", "n0"),
+             ("n1", "n0"), ("n2", "n4")]  # one reversed repeat
+    overrides = [Parameter("graph_file", value=str(path))]
+    with RosHarness(SingleThreadedExecutor) as h:
+        node, client = start_pair(h, overrides=overrides)
+        for a, b in pairs:
+            client.send_edge(a, b, rel(gt, a, b))
+        wait_received(node, len(pairs))
+        assert client.solve().success
+        before = node.last_result
+        assert before is not None
+        ok, message = node.save_graph()
+        assert ok and path.exists(), message
+        measurements_before = node.accumulator.snapshot().graph.measurement_arrays()
+    with RosHarness(SingleThreadedExecutor) as h:
+        node, client = start_pair(h, overrides=overrides)
+        after_graph = node.accumulator.snapshot().graph
+        assert after_graph.node_ids == before.node_ids
+        for x, y in zip(after_graph.measurement_arrays(), measurements_before, strict=True):
+            np.testing.assert_allclose(x, y, atol=1e-12)
+        assert client.solve().success
+        after = node.last_result
+        assert after is not None
+        np.testing.assert_allclose(after.rotations, before.rotations, atol=1e-9)
+
+
+def test_save_graph_without_file_is_refused() -> None:
+    with RosHarness(SingleThreadedExecutor) as h:
+        node, _ = start_pair(h)
+        ok, message = node.save_graph()
+        assert not ok and "graph_file" in message
+
+
 # ---------------------------------------------------------------------- services
 @pytest.mark.parametrize("executor", ["single", "multi"])
 def test_solve_and_reset_services(executor: str) -> None:

@@ -1,0 +1,41 @@
+"""Round trip of the live-graph file (rotavg_ros.graph_store)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rotavg_ros.graph_store import load_graph, save_graph
+from rotavg_ros.so3 import random_rotations
+from rotavg_ros.view_graph import ViewGraph
+
+
+def test_round_trip_keeps_frames_order_weights_and_repeats(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    R = random_rotations(4, rng)
+    g = ViewGraph()
+    edges = [("base_link", "cam/0", 1.0), ("cam/0", "lidar_7", 2.5), ("lidar_7", "base_link", 1.0),
+             ("cam/0", "base_link", 4.0), ("x", "lidar_7", 0.5)]
+    index = {"base_link": 0, "cam/0": 1, "lidar_7": 2, "x": 3}
+    for a, b, w in edges:
+        g.add_edge(a, b, R[index[a]] @ R[index[b]].T, w)
+    path = tmp_path / "g.g2o"
+    assert save_graph(path, g, {"cam/0": R[1]}) == len(edges)
+    stored = load_graph(path)
+    g2 = ViewGraph()
+    for m in stored.measurements:
+        g2.add_edge(m.frame_i, m.frame_j, m.R, m.weight)
+    assert g2.node_ids == g.node_ids
+    for x, y in zip(g2.measurement_arrays(), g.measurement_arrays(), strict=True):
+        np.testing.assert_allclose(x, y, atol=1e-12)
+    np.testing.assert_allclose(stored.orientations["cam/0"], R[1], atol=1e-12)
+    np.testing.assert_allclose(stored.orientations["x"], np.eye(3), atol=1e-12)
+
+
+def test_foreign_file_is_refused_with_its_name(tmp_path: Path) -> None:
+    path = tmp_path / "plain.g2o"
+    path.write_text("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n")
+    with pytest.raises(ValueError, match="plain.g2o"):
+        load_graph(path)
