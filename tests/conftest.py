@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -28,3 +29,15 @@ def shared_dir() -> Path:
         pytest.skip("shared benchmark data not found: expected ../shared next to the repo "
                     "or a folder in $ROTAVG_SHARED containing data/")
     return found
+
+
+@pytest.fixture
+def single_torch_thread() -> Iterator[None]:
+    """One torch thread: solver tests use tiny problems, and two spinning OpenMP threads on a
+    shared 2-core machine are several times slower than one. Restored afterwards."""
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

@@ -5,26 +5,16 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
 from itertools import combinations
 from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from rotavg_ros.cli import main
 from rotavg_ros.so3 import geodesic_distance, matrix_to_quat, quat_to_matrix, random_rotations
 
-
-@pytest.fixture(autouse=True)
-def _single_torch_thread() -> Iterator[None]:
-    """One torch thread: these problems are tiny, and two spinning OpenMP threads on a
-    shared 2-core machine are several times slower than one. Restored afterwards."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

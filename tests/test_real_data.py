@@ -11,27 +11,17 @@ Reference numbers (measured when these tests were written, CPU, seed 0):
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from rotavg_ros.datasets import Benchmark, load_ellis_island, load_se_sync
 from rotavg_ros.metrics import evaluate
 from rotavg_ros.solver import RotationAverager
 from rotavg_ros.solver_types import SolverOptions
 
-
-@pytest.fixture(autouse=True)
-def _single_torch_thread() -> Iterator[None]:
-    """One torch thread: these problems are tiny, and two spinning OpenMP threads on a
-    shared 2-core machine are several times slower than one. Restored afterwards."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 def _require(path: Path) -> None:

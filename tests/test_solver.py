@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Iterator, Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import replace
 from itertools import combinations
 
 import numpy as np
 import pytest
-import torch
 
 from rotavg_ros.metrics import evaluate
 from rotavg_ros.so3 import geodesic_distance, random_rotations, rotation_about_axis
@@ -16,15 +15,7 @@ from rotavg_ros.solver import RotationAverager, average_rotations
 from rotavg_ros.solver_types import SolveResult, SolverOptions
 from rotavg_ros.view_graph import ViewGraph
 
-
-@pytest.fixture(autouse=True)
-def _single_torch_thread() -> Iterator[None]:
-    """One torch thread: these problems are tiny, and two spinning OpenMP threads on a
-    shared 2-core machine are several times slower than one. Restored afterwards."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 FAST = SolverOptions(depths=(2,), iterations=300)
