@@ -334,6 +334,32 @@ def test_timer_solves_only_when_the_graph_changed(ros: RosHarness) -> None:  # n
     assert calls == [1, 2]
 
 
+# ---------------------------------------------------------------------- memory
+def _rss_mb() -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def test_memory_stays_bounded_over_many_solves(ros: RosHarness) -> None:  # noqa: F811
+    """60 consecutive solves of a growing graph (real solver, in process): RSS levels off."""
+    gt = chain_gt(61, seed=8)
+    node, client = start_pair(ros, solve_fn=default_solve, overrides=[
+        Parameter("depths", value=[2]), Parameter("iterations", value=50)])
+    rss: list[float] = []
+    for k in range(60):
+        client.send_edge(f"n{k}", f"n{k + 1}", rel(gt, f"n{k}", f"n{k + 1}"))
+        wait_received(node, k + 1)
+        assert client.solve().success
+        rss.append(_rss_mb())
+    assert node.last_result is not None and len(node.last_result.node_ids) == 61
+    # After warm-up, growth over the last 50 solves stays far below a leak's pace.
+    print(f"RSS after solve 10: {rss[9]:.1f} MB, after solve 60: {rss[-1]:.1f} MB")
+    assert rss[-1] - rss[9] < 40.0, f"RSS grew from {rss[9]:.0f} to {rss[-1]:.0f} MB"
+
+
 # ---------------------------------------------------------------------- concurrency
 @pytest.mark.parametrize("executor", ["single", "multi"])
 def test_long_solve_does_not_block_ingestion(executor: str) -> None:
