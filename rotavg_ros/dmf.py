@@ -101,6 +101,12 @@ def _warm_factors(
     return factors
 
 
+def factor_shapes(num_nodes: int, depth: int, width: int) -> list[tuple[int, int]]:
+    """Shapes of W_1 ... W_{d/2}: (3N, h), (h, h) ..., (h, 3); just (3N, 3) for d = 2."""
+    n3, k = 3 * num_nodes, depth // 2
+    return [(n3, 3)] if k == 1 else [(n3, width)] + [(width, width)] * (k - 2) + [(width, 3)]
+
+
 def _product(factors: list[torch.Tensor]) -> torch.Tensor:
     """W_1 (W_2 (... W_k)): right to left so every product is thin (x 3 columns)."""
     out = factors[-1]
@@ -174,10 +180,7 @@ def fit_symmetric(
     """
     dev = s.device
     gen = torch.Generator().manual_seed(s.seed)
-    n3 = 3 * num_nodes
-    k = s.depth // 2
-    h = s.hidden_width
-    shapes = [(n3, 3)] if k == 1 else [(n3, h)] + [(h, h)] * (k - 2) + [(h, 3)]
+    shapes = factor_shapes(num_nodes, s.depth, s.hidden_width)
     if H0 is None:
         factors = _init_factors(shapes, s.init_scale, gen, dev)
     else:
@@ -241,10 +244,7 @@ def fit_symmetric_lbfgs(
     """
     dev = s.device
     gen = torch.Generator().manual_seed(s.seed)
-    n3 = 3 * num_nodes
-    k = s.depth // 2
-    h = s.hidden_width
-    shapes = [(n3, 3)] if k == 1 else [(n3, h)] + [(h, h)] * (k - 2) + [(h, 3)]
+    shapes = factor_shapes(num_nodes, s.depth, s.hidden_width)
     factors = _warm_factors(H0, shapes, s.init_scale, gen, dev)
     blocks = EdgeBlocks(num_nodes, i, j, dev)
     tR = torch.as_tensor(R, dtype=torch.float64, device=dev).permute(1, 2, 0).contiguous()
