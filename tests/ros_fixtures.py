@@ -20,7 +20,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable, Hashable, Iterator, Sequence
+from collections.abc import Callable, Hashable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -50,7 +50,12 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
-from rotavg_ros.so3 import geodesic_distance, matrix_to_quat, quat_to_matrix  # noqa: E402
+from rotavg_ros.so3 import (  # noqa: E402
+    geodesic_distance,
+    matrix_to_quat,
+    project_to_so3,
+    quat_to_matrix,
+)
 from rotavg_ros.solver_types import SolveResult, SolverOptions  # noqa: E402
 from rotavg_ros.view_graph import ViewGraph  # noqa: E402
 
@@ -312,3 +317,12 @@ def spanning_tree_solve(
         cost_by_depth={},
         duration_s=time.perf_counter() - t0,
     )
+
+
+def aligned_errors_deg(est: Mapping[Any, np.ndarray], gt: Mapping[Any, np.ndarray]) -> np.ndarray:
+    """Errors (deg) after the right gauge R_est ~= R_gt Q, Q = project(sum R_gt^T R_est)."""
+    keys = sorted(gt)
+    G = np.stack([gt[k] for k in keys])
+    E = np.stack([est[k] for k in keys])
+    Q = project_to_so3(np.einsum("kji,kjl->il", G, E))
+    return np.degrees(geodesic_distance(E, G @ Q))

@@ -26,6 +26,7 @@ from ros_fixtures import (
     DOMAIN_ID,
     EdgeClient,
     RosHarness,
+    aligned_errors_deg,
     ros,  # noqa: F401 - pytest fixture
     spanning_tree_solve,
     wait_until,
@@ -37,8 +38,6 @@ from msg_adapters.inputs import DEFAULT_REFERENCE_VARIANCE
 from rotavg_ros.node import PARAMETERS, RotavgNode
 from rotavg_ros.pipeline import default_solve
 from rotavg_ros.so3 import (
-    geodesic_distance,
-    project_to_so3,
     random_rotations,
     rotation_about_axis,
 )
@@ -72,15 +71,6 @@ def start_pair(
 def wait_received(node: RotavgNode, count: int, timeout: float = 10.0) -> None:
     assert wait_until(lambda: node.accumulator.stats().received >= count, timeout), (
         f"node received {node.accumulator.stats().received} of {count} messages")
-
-
-def aligned_errors_deg(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> np.ndarray:
-    """Errors after the right gauge R_est ~= R_gt Q, Q = project(sum R_gt^T R_est)."""
-    keys = sorted(gt)
-    G = np.stack([gt[k] for k in keys])
-    E = np.stack([est[k] for k in keys])
-    Q = project_to_so3(np.einsum("kji,kjl->il", G, E))
-    return np.degrees(geodesic_distance(E, G @ Q))
 
 
 def chain_gt(n: int, seed: int = 0) -> dict[str, np.ndarray]:

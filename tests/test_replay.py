@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from ros_fixtures import (
     RosHarness,
+    aligned_errors_deg,
     spanning_tree_solve,
     wait_until,
 )
@@ -45,9 +46,7 @@ from rotavg_ros.replay import (
     write_g2o_with_mapping,
 )
 from rotavg_ros.so3 import (
-    geodesic_distance,
     matrix_to_quat,
-    project_to_so3,
     quat_to_matrix,
     random_rotations,
     rotation_about_axis,
@@ -169,14 +168,6 @@ def mixed_bag_messages(gt: dict[str, np.ndarray], seed: int, noise_deg: float = 
                 pending_tf = []
         t += 5 * MS
     return msgs
-
-
-def aligned_errors_deg(est: dict[Any, np.ndarray], gt: dict[str, np.ndarray]) -> np.ndarray:
-    keys = sorted(gt)
-    G = np.stack([gt[k] for k in keys])
-    E = np.stack([est[k] for k in keys])
-    Q = project_to_so3(np.einsum("kji,kjl->il", G, E))
-    return np.degrees(geodesic_distance(E, G @ Q))
 
 
 def config(bag: Path, **kwargs: Any) -> ReplayConfig:
