@@ -57,7 +57,13 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--seed", type=int, default=d.seed)
     g.add_argument("--depths", default=",".join(map(str, d.depths)),
                    help="candidate depths, comma separated (default %(default)s)")
-    g.add_argument("--iterations", type=int, default=d.iterations)
+    g.add_argument("--iterations", type=int, default=d.iterations,
+                   help="dense mode: Adam iterations at most (default %(default)s)")
+    g.add_argument("--tolerance", type=float, default=d.tolerance,
+                   help="dense mode early stopping: relative change of H per 25 iterations "
+                   "(0 = off; default %(default)s)")
+    g.add_argument("--dtype", default=d.dtype, choices=("float32", "float64"),
+                   help="dense mode: precision of the Adam fit (default %(default)s)")
     g.add_argument("--lr", type=float, default=d.lr)
     g.add_argument("--sigma", type=float, default=d.sigma,
                    help="filter threshold on d_chord(R_ij, R_ij^tree) (default %(default)s)")
@@ -77,7 +83,8 @@ def options_from_args(args: argparse.Namespace) -> SolverOptions:
         raise InputError(f"--depths: expected comma-separated integers: {args.depths!r}") from exc
     progress = None if getattr(args, "quiet", False) else _stderr
     return SolverOptions(
-        mode=args.mode, depths=depths, iterations=args.iterations, lr=args.lr, sigma=args.sigma,
+        mode=args.mode, depths=depths, iterations=args.iterations, tolerance=args.tolerance,
+        dtype=args.dtype, lr=args.lr, sigma=args.sigma,
         seed=args.seed, device=args.device, threads=args.threads,
         hidden_width=args.hidden_width, use_filter=not args.no_filter,
         use_support_count=not args.no_support_count,

@@ -30,6 +30,9 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
+from rotavg_ros.adam import Adam
+from rotavg_ros.factor_chain import FactorChain
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
@@ -49,9 +52,19 @@ class DMFSettings:
     init_scale: float = 1e-2
     diagonal_weight: float = 1.0
     huber_delta: float = 0.0
-    """0 = the paper's entry-wise L1. > 0: entry-wise Huber (quadratic below delta)."""
+    """Sparse-graph L-BFGS fit only: entry-wise Huber threshold (quadratic below it)."""
+    tolerance: float = 0.0
+    """Early stopping of the Adam fit: relative change of H per check; 0 = off."""
+    check_every: int = 25
+    patience: int = 2
+    """Converged after this many consecutive checks below ``tolerance`` (after the
+    warm-up); the fit then anneals the step size over ``cooldown`` iterations and stops."""
+    cooldown: int = 50
     seed: int = 0
     device: str = "cpu"
+    dtype: str = "float64"
+    """Torch dtype of the Adam fit: ``float32`` halves memory traffic (the full-width
+    factors are memory-bound); residuals of ~1e-3 rad are far above its precision."""
 
 
 @dataclass
@@ -61,10 +74,12 @@ class DMFFit:
     H: FloatArray  # (N, 3, 3) blocks H_i ~= R_i Q
     weights: FloatArray  # (E,) final reweighted edge weights
     loss: float
+    iterations: int = 0  # iterations run (fewer than asked when stopped early)
 
 
 def _init_factors(
-    shapes: list[tuple[int, int]], scale: float, gen: torch.Generator, device: str
+    shapes: list[tuple[int, int]], scale: float, gen: torch.Generator, device: str,
+    dtype: torch.dtype = torch.float64,
 ) -> list[torch.Tensor]:
     """Near-zero Gaussian factors; each scaled so the product's entries are about ``scale``."""
     k = len(shapes)
@@ -73,13 +88,13 @@ def _init_factors(
     for rows, cols in shapes:
         std = per / math.sqrt(cols) if k > 1 else scale
         w = torch.randn(rows, cols, generator=gen, dtype=torch.float64) * std
-        factors.append(w.to(device).requires_grad_(True))
+        factors.append(w.to(device=device, dtype=dtype).requires_grad_(True))
     return factors
 
 
 def _warm_factors(
     H0: FloatArray, shapes: list[tuple[int, int]], noise: float, gen: torch.Generator,
-    device: str,
+    device: str, dtype: torch.dtype = torch.float64,
 ) -> list[torch.Tensor]:
     """Factors whose product is exactly ``H0`` (3N x 3).
 
@@ -89,7 +104,7 @@ def _warm_factors(
     """
     H0t = torch.as_tensor(H0, dtype=torch.float64).reshape(-1, 3)
     if len(shapes) == 1:
-        return [H0t.clone().to(device).requires_grad_(True)]
+        return [H0t.to(device=device, dtype=dtype, copy=True).requires_grad_(True)]
     factors = []
     for idx, (rows, cols) in enumerate(shapes):
         if idx == 0:
@@ -97,7 +112,7 @@ def _warm_factors(
             w[:, :3] = H0t
         else:
             w = torch.eye(rows, cols, dtype=torch.float64)
-        factors.append(w.to(device).requires_grad_(True))
+        factors.append(w.to(device=device, dtype=dtype).requires_grad_(True))
     return factors
 
 
@@ -125,9 +140,9 @@ def _lr_at(step: int, s: DMFSettings) -> float:
 class EdgeBlocks:
     """Observed blocks in a structure-of-arrays layout, for O(|E|) products.
 
-    Blocks are held as ``(3, 3, E)`` tensors so the 3x3 products of every edge are a few
-    vectorised multiply-adds over E (several times faster on CPU than ``bmm`` on
-    ``(E, 3, 3)``, which loops over tiny matrices).
+    Node blocks are held as ``(3, 3, N)`` and edge blocks as ``(3, 3, E)`` tensors, so the
+    3x3 products of every edge are a few vectorised multiply-adds over E (several times
+    faster on CPU than ``bmm`` on ``(E, 3, 3)``, which loops over tiny matrices).
     """
 
     def __init__(self, num_nodes: int, i: IntArray, j: IntArray, device: str) -> None:
@@ -136,21 +151,38 @@ class EdgeBlocks:
         self.ti = torch.as_tensor(i, dtype=torch.int64, device=device)
         self.tj = torch.as_tensor(j, dtype=torch.int64, device=device)
 
-    def products(self, H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(H_i, H_j, H_i H_j^T)`` for every edge as (3, 3, E); ``H`` is (N, 3, 3)."""
-        HT = H.reshape(self.num_nodes, 9).T.contiguous()
-        Hi = HT.index_select(1, self.ti).view(3, 3, self.num_edges)
-        Hj = HT.index_select(1, self.tj).view(3, 3, self.num_edges)
+    def products(
+        self, Hn: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(H_i, H_j, H_i H_j^T)`` for every edge as (3, 3, E); ``Hn`` is (3, 3, N)."""
+        flat = Hn.view(9, self.num_nodes)  # 2-D gather: the fast index_select path
+        Hi = flat.index_select(1, self.ti).view(3, 3, self.num_edges)
+        Hj = flat.index_select(1, self.tj).view(3, 3, self.num_edges)
         return Hi, Hj, soa_matmul(Hi, Hj, transpose_b=True)
 
     def node_gradient(
         self, G: torch.Tensor, Hi: torch.Tensor, Hj: torch.Tensor
     ) -> torch.Tensor:
-        """d/dH of sum_e <G_e, H_i H_j^T>: G_e H_j onto node i, G_e^T H_i onto node j."""
+        """d/dH of sum_e <G_e, H_i H_j^T> as (3, 3, N): G_e H_j onto i, G_e^T H_i onto j."""
         out = torch.zeros(9, self.num_nodes, dtype=G.dtype, device=G.device)
         out.index_add_(1, self.ti, soa_matmul(G, Hj).view(9, self.num_edges))
         out.index_add_(1, self.tj, soa_matmul(G, Hi, transpose_a=True).view(9, self.num_edges))
-        return out.T.reshape(self.num_nodes, 3, 3)
+        return out.view(3, 3, self.num_nodes)
+
+
+def nodes_from_h_t(h_t: torch.Tensor) -> torch.Tensor:
+    """``H^T`` (3, 3N), entry [b, 3i + a] = H_i[a, b], as node blocks (3, 3, N) [a, b, i]."""
+    return h_t.view(3, -1, 3).permute(2, 0, 1).contiguous()
+
+
+def h_t_from_nodes(Hn: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`nodes_from_h_t`: (3, 3, N) node blocks to ``H^T`` (3, 3N)."""
+    return Hn.permute(1, 2, 0).reshape(3, -1)
+
+
+def nodes_from_stacked(H: torch.Tensor) -> torch.Tensor:
+    """(N, 3, 3) blocks as (3, 3, N)."""
+    return H.permute(1, 2, 0).contiguous()
 
 
 def soa_matmul(
@@ -169,59 +201,95 @@ def fit_symmetric(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, s: DMFSettings,
     progress: Callable[[int, float], None] | None = None,
     H0: FloatArray | None = None,
+    monitor: Callable[[int, FloatArray], None] | None = None,
 ) -> DMFFit:
-    """Fit H H^T to the observed blocks; returns H's blocks and the final weights.
+    """Fit H H^T to the observed blocks with Adam; returns H's blocks and the final weights.
 
     ``H0`` (N, 3, 3), when given, is a warm start: the factors start with product ``H0``
-    instead of near zero (used on sparse graphs and for incremental re-solves).
+    instead of near zero (used for incremental re-solves).
 
-    The L1 loss gradient with respect to H is formed by hand (sign of the block residual,
-    scattered onto both end nodes), then back-propagated through the factor product.
+    The gradient of the L1 loss with respect to H is formed by hand (sign of the block
+    residual, scattered onto both end nodes) and taken through the factor product by
+    :class:`~rotavg_ros.factor_chain.FactorChain`; no autograd graph is built.
+
+    Early stopping (``s.tolerance > 0``): after the warm-up, every ``s.check_every``
+    iterations the relative change ``|H - H_prev|_F / |H|_F`` since the previous check is
+    compared with ``s.tolerance``. Once it stays below for ``s.patience`` checks, the step
+    size decays geometrically to ``lr * lr_final_ratio`` over ``s.cooldown`` iterations
+    (what the cosine schedule's tail does for a full run: it makes L1 fits exact) and the
+    fit ends. ``monitor(step, H)`` (N, 3, 3) is called every ``s.check_every`` iterations.
     """
     dev = s.device
+    dt = getattr(torch, s.dtype)
     gen = torch.Generator().manual_seed(s.seed)
     shapes = factor_shapes(num_nodes, s.depth, s.hidden_width)
     if H0 is None:
-        factors = _init_factors(shapes, s.init_scale, gen, dev)
+        factors = _init_factors(shapes, s.init_scale, gen, dev, dt)
     else:
-        factors = _warm_factors(H0, shapes, s.init_scale, gen, dev)
+        factors = _warm_factors(H0, shapes, s.init_scale, gen, dev, dt)
+    chain = FactorChain(factors)
     blocks = EdgeBlocks(num_nodes, i, j, dev)
-    tR = torch.as_tensor(R, dtype=torch.float64, device=dev).permute(1, 2, 0).contiguous()
-    weights = torch.as_tensor(w, dtype=torch.float64, device=dev).clone()
-    eye = torch.eye(3, dtype=torch.float64, device=dev)
-    opt = torch.optim.Adam(factors, lr=s.lr, fused=dev == "cpu" or None)
+    tR = torch.as_tensor(R, device=dev).to(dt).permute(1, 2, 0).contiguous()
+    weights = torch.as_tensor(w, device=dev).to(dt, copy=True)
+    eye = torch.eye(3, dtype=dt, device=dev)[:, :, None]
+    opt = Adam(factors, lr=s.lr)
     loss_val = float("nan")
-    for step in range(s.iterations):
-        for group in opt.param_groups:
-            group["lr"] = _lr_at(step, s)
-        H = _product(factors).view(num_nodes, 3, 3)
-        Hd = H.detach()
-        Hi, Hj, P = blocks.products(Hd)
+    calm, previous = 0, None
+    end, anneal_from = s.iterations, -1
+    step = 0
+    while step < end:
+        opt.lr = _lr_at(step, s) if anneal_from < 0 else _anneal_lr(step, anneal_from, end, s)
+        Hn = nodes_from_h_t(chain.forward())
+        Hi, Hj, P = blocks.products(Hn)
         D = P.sub_(tR)
-        Dd = torch.bmm(Hd, Hd.transpose(1, 2)) - eye
-        last = step + 1 == s.iterations
-        if last or (progress is not None and (step + 1) % 250 == 0):
-            loss_val = float((weights * D.abs().sum(dim=(0, 1))).sum()
-                             + s.diagonal_weight * Dd.abs().sum())
-            if progress is not None:
-                progress(step + 1, loss_val)
-        if s.huber_delta > 0:
-            G = (D / s.huber_delta).clamp_(-1.0, 1.0).mul_(weights)
-        else:
-            G = torch.sign(D).mul_(weights)
-        grad_H = blocks.node_gradient(G, Hi, Hj)
-        grad_H += 2.0 * s.diagonal_weight * torch.bmm(torch.sign(Dd), Hd)
-        opt.zero_grad(set_to_none=True)
-        H.backward(grad_H)
+        Dd = soa_matmul(Hn, Hn, transpose_b=True).sub_(eye)
+        if progress is not None and (step + 1) % 250 == 0:
+            loss_val = _l1_loss(D, Dd, weights, s.diagonal_weight)
+            progress(step + 1, loss_val)
+        G = torch.sign(D).mul_(weights)
+        grad = blocks.node_gradient(G, Hi, Hj)
+        grad.add_(soa_matmul(torch.sign(Dd), Hn), alpha=2.0 * s.diagonal_weight)
+        chain.backward(h_t_from_nodes(grad))
         opt.step()
         if (s.reweighting and step + 1 > s.warmup
                 and (step + 1 - s.warmup) % s.reweight_every == 0):
             r = D.pow(2).sum(dim=(0, 1)).sqrt()
             tau = torch.median(r)
             weights *= torch.where(r > tau, tau / r.clamp_min(1e-12), torch.ones_like(r))
+        step += 1
+        if monitor is not None and step % s.check_every == 0:
+            monitor(step, _stacked(Hn))
+        if s.tolerance > 0 and anneal_from < 0 and step % s.check_every == 0:
+            if previous is not None and step > s.warmup:
+                change = float((Hn - previous).norm() / Hn.norm().clamp_min(1e-30))
+                calm = calm + 1 if change < s.tolerance else 0
+                if calm >= s.patience:  # converged at this step size: anneal, then stop
+                    anneal_from, end = step, min(end, step + s.cooldown)
+            previous = Hn
     with torch.no_grad():
-        H = _product(factors).view(num_nodes, 3, 3)
-    return DMFFit(H.detach().cpu().numpy(), weights.cpu().numpy(), loss_val)
+        Hn = nodes_from_h_t(chain.forward())
+        Hi, Hj, P = blocks.products(Hn)
+        D = P.sub_(tR)
+        Dd = soa_matmul(Hn, Hn, transpose_b=True).sub_(eye)
+        loss_val = _l1_loss(D, Dd, weights, s.diagonal_weight)
+    return DMFFit(_stacked(Hn), weights.double().cpu().numpy(), loss_val, end)
+
+
+def _anneal_lr(step: int, start: int, end: int, s: DMFSettings) -> float:
+    """After early convergence: geometric decay from the schedule's rate at ``start`` to
+    ``lr * lr_final_ratio`` at ``end`` (the cosine schedule's tail, compressed)."""
+    lo, hi = s.lr * s.lr_final_ratio, _lr_at(start, s)
+    return hi * (lo / hi) ** ((step - start) / max(1, end - start - 1))
+
+
+def _l1_loss(D: torch.Tensor, Dd: torch.Tensor, weights: torch.Tensor, diag: float) -> float:
+    """The weighted entry-wise L1 loss from the edge and diagonal residual blocks."""
+    return float((weights * D.abs().sum(dim=(0, 1))).sum() + diag * Dd.abs().sum())
+
+
+def _stacked(Hn: torch.Tensor) -> FloatArray:
+    """(3, 3, N) node blocks as a float64 (N, 3, 3) array."""
+    return Hn.permute(2, 0, 1).double().cpu().numpy()
 
 
 def fit_symmetric_lbfgs(
@@ -250,7 +318,7 @@ def fit_symmetric_lbfgs(
     tR = torch.as_tensor(R, dtype=torch.float64, device=dev).permute(1, 2, 0).contiguous()
     weights = torch.as_tensor(w, dtype=torch.float64, device=dev).clone()
     noise_scale = weights.sqrt()  # residual x sqrt(information): comparable across edges
-    eye = torch.eye(3, dtype=torch.float64, device=dev)
+    eye = torch.eye(3, dtype=torch.float64, device=dev)[:, :, None]
     delta = max(s.huber_delta, 1e-9)
 
     def huber(x: torch.Tensor) -> torch.Tensor:
@@ -264,15 +332,15 @@ def fit_symmetric_lbfgs(
     def closure() -> torch.Tensor:
         opt.zero_grad(set_to_none=True)
         H = _product(factors).view(num_nodes, 3, 3)
-        Hd = H.detach()
-        Hi, Hj, P = blocks.products(Hd)
+        Hn = nodes_from_stacked(H.detach())
+        Hi, Hj, P = blocks.products(Hn)
         D = P.sub_(tR)
-        Dd = torch.bmm(Hd, Hd.transpose(1, 2)) - eye
+        Dd = soa_matmul(Hn, Hn, transpose_b=True).sub_(eye)
         loss = (weights * huber(D).sum(dim=(0, 1))).sum() + s.diagonal_weight * huber(Dd).sum()
         G = (D / delta).clamp_(-1.0, 1.0).mul_(weights)
-        grad_H = blocks.node_gradient(G, Hi, Hj)
-        grad_H += 2.0 * s.diagonal_weight * torch.bmm((Dd / delta).clamp(-1.0, 1.0), Hd)
-        H.backward(grad_H)
+        grad = blocks.node_gradient(G, Hi, Hj)
+        grad.add_(soa_matmul((Dd / delta).clamp_(-1.0, 1.0), Hn), alpha=2.0 * s.diagonal_weight)
+        H.backward(grad.permute(2, 0, 1))
         return loss
 
     loss_val = float("nan")
@@ -284,8 +352,8 @@ def fit_symmetric_lbfgs(
         if not s.reweighting or rnd + 1 == rounds:
             continue
         with torch.no_grad():
-            Hd = _product(factors).view(num_nodes, 3, 3)
-            r = blocks.products(Hd)[2].sub_(tR).pow(2).sum(dim=(0, 1)).sqrt() * noise_scale
+            Hn = nodes_from_stacked(_product(factors).view(num_nodes, 3, 3))
+            r = blocks.products(Hn)[2].sub_(tR).pow(2).sum(dim=(0, 1)).sqrt() * noise_scale
             thresh = outlier_factor * torch.median(r)
             scale = torch.where(r > thresh, thresh / r.clamp_min(1e-12), torch.ones_like(r))
             weights *= scale

@@ -30,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
@@ -75,9 +76,7 @@ def loop_statistics(
     if tri.count == 0:
         zeros = np.zeros(num_edges)
         return np.zeros(num_edges, np.int64), zeros, zeros, float("nan"), 0
-    # delta = d_chord(R_ab, R_ac R_cb) = || R_ab - R_ac R_bc^T ||_F
-    pred = np.einsum("tij,tkj->tik", R[tri.e_ac], R[tri.e_bc])
-    delta = chordal_distance(R[tri.e_ab], pred)
+    delta = loop_errors(R, tri.e_ab, tri.e_bc, tri.e_ac)
     epsilon = float(np.median(delta))
     edges3 = np.concatenate([tri.e_ab, tri.e_bc, tri.e_ac])
     delta3 = np.tile(delta, 3)
@@ -86,6 +85,30 @@ def loop_statistics(
     support = np.bincount(edges3, weights=(delta3 < epsilon).astype(np.float64),
                           minlength=num_edges).astype(np.int64)
     return support, total, count, epsilon, tri.count
+
+
+def loop_errors(
+    R: FloatArray, e_ab: IntArray, e_bc: IntArray, e_ac: IntArray, chunk: int = 1 << 18
+) -> FloatArray:
+    """``delta = d_chord(R_ab, R_ac R_cb) = ||R_ab - R_ac R_bc^T||_F`` per triangle.
+
+    Edge rotations are gathered in a structure-of-arrays layout (9, T) and the 3x3 products
+    written out as multiply-adds over T (several times faster than ``einsum`` over (T, 3, 3)
+    on a million triangles), in chunks of ``chunk`` triangles to bound memory.
+    """
+    rows = torch.as_tensor(R.reshape(-1, 9).T.copy())  # rows[3a + b] = R[:, a, b]
+    out = np.empty(e_ab.size)
+    for start in range(0, e_ab.size, chunk):
+        sl = slice(start, start + chunk)
+        ab, bc, ac = (rows.index_select(1, torch.as_tensor(e[sl])) for e in (e_ab, e_bc, e_ac))
+        sq = torch.zeros(ab.shape[1], dtype=torch.float64)
+        for a in range(3):
+            for c in range(3):  # (R_ac R_bc^T)[a, c] = sum_b R_ac[a, b] R_bc[c, b]
+                pred = ac[3 * a] * bc[3 * c]
+                pred.addcmul_(ac[3 * a + 1], bc[3 * c + 1]).addcmul_(ac[3 * a + 2], bc[3 * c + 2])
+                sq.add_((ab[3 * a + c] - pred).square_())
+        out[sl] = sq.sqrt_().numpy()
+    return out
 
 
 def priority_order(

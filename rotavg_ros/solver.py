@@ -8,6 +8,7 @@ the output gives every connected component its own gauge, with its anchor at ide
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Hashable, Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -202,15 +203,15 @@ class RotationAverager:
                 H0 = chordal_rotations(n, i, j, R, w)
             pred = np.einsum("eab,ecb->eac", H0[i], H0[j])
             delta = opt.huber_factor * float(np.median(np.abs(pred - R)))
-        threads = opt.threads or torch.get_num_threads()
-        workers = 1 if device != "cpu" else max(1, min(len(depths), threads))
+        workers, intra = _thread_plan(len(depths), opt.threads, device)
 
         def run(depth: int) -> DMFFit:
             s = DMFSettings(
                 depth=depth, hidden_width=width, iterations=opt.iterations, lr=opt.lr,
                 reweighting=opt.reweighting, reweight_every=opt.reweight_every,
                 warmup=opt.warmup, init_scale=opt.init_scale, seed=opt.seed + depth,
-                device=device, huber_delta=delta,
+                device=device, huber_delta=delta, tolerance=opt.tolerance,
+                dtype=opt.dtype,
             )
 
             def report(step: int, loss: float) -> None:
@@ -230,7 +231,7 @@ class RotationAverager:
             return fit_symmetric(n, i, j, R, w, s, report)
 
         previous = torch.get_num_threads()
-        torch.set_num_threads(max(1, threads // workers))
+        torch.set_num_threads(intra)
         try:
             if workers == 1:
                 return {d: run(d) for d in depths}
@@ -244,6 +245,24 @@ class RotationAverager:
     def _say(self, text: str) -> None:
         if self.options.progress is not None:
             self.options.progress(text)
+
+
+def _thread_plan(candidates: int, threads: int | None, device: str) -> tuple[int, int]:
+    """``(parallel candidate fits, torch threads per fit)``.
+
+    ``threads=None``: one thread per fit, as many fits at once as there are CPUs. The fits
+    are sequences of small tensor operations; torch's OpenMP threads spin-wait between them
+    and collapse when the CPU is shared (Ellis Island, one depth, beside one busy process:
+    3.7 s with one thread, 68.7 s with two), and a node runs beside a SLAM front end.
+    An explicit ``threads`` is split among the parallel fits.
+    """
+    if device != "cpu":
+        return 1, torch.get_num_threads()
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    if threads is None:
+        return max(1, min(candidates, cpus or 1)), 1
+    workers = max(1, min(candidates, threads))
+    return workers, max(1, threads // workers)
 
 
 def warm_start_rotations(
