@@ -40,6 +40,7 @@ class ComponentSolution:
     kept: BoolArray
     depth: int
     cost_by_depth: dict[int, float]
+    iterations_by_depth: dict[int, int]
 
 
 def rotations_from_factor(H: FloatArray) -> FloatArray:
@@ -112,7 +113,7 @@ class RotationAverager:
             graph.num_nodes, edges.i, edges.j, edges.R, edges.weight, self.options,
             anchor=anchor_idx, initial=init, initial_depth=initial_depth,
         )
-        rotations, component, comp_anchor, depth, kept, costs, duration = result
+        rotations, component, comp_anchor, depth, kept, costs, duration, iterations = result
         residuals = _residuals_deg(rotations, edges.i, edges.j, edges.R)
         return SolveResult(
             node_ids=ids,
@@ -125,6 +126,7 @@ class RotationAverager:
             num_filtered=int((~kept).sum()),
             cost_by_depth=costs,
             duration_s=duration,
+            iterations_by_depth=iterations,
         )
 
     def solve_component(
@@ -161,6 +163,7 @@ class RotationAverager:
         fits = self._fit_depths(n, fi, fj, fR, fw, sparse, H0, initial_depth)
         costs: dict[int, float] = {}
         rots: dict[int, FloatArray] = {}
+        iterations = {depth: fit.iterations for depth, fit in fits.items()}
         for depth, fit in fits.items():
             rot = rotations_from_factor(fit.H)
             if not np.all(np.isfinite(rot)):
@@ -173,7 +176,7 @@ class RotationAverager:
         rot = rots[best]
         rot = project_to_so3(np.einsum("nab,cb->nac", rot, rot[0]))  # gauge: R_i R_0^T
         rot[0] = np.eye(3)  # exactly, not up to the SVD's rounding
-        return ComponentSolution(rot, kept, best, costs)
+        return ComponentSolution(rot, kept, best, costs, iterations)
 
     def is_sparse(self, num_nodes: int, num_edges: int) -> bool:
         """Whether the sparse-graph variant is used for this component."""
@@ -289,11 +292,13 @@ def average_rotations(
     anchor: int = 0,
     initial: FloatArray | None = None,
     initial_depth: int | None = None,
-) -> tuple[FloatArray, IntArray, list[int], int, BoolArray, dict[int, float], float]:
+) -> tuple[FloatArray, IntArray, list[int], int, BoolArray, dict[int, float], float,
+           dict[int, int]]:
     """Array interface: solve each component; see :meth:`RotationAverager.solve`.
 
     Returns ``(rotations, component, component_anchor, depth, kept, cost_by_depth,
-    duration_s)`` where ``depth``/``cost_by_depth`` belong to the largest component.
+    duration_s, iterations_by_depth)`` where ``depth``, ``cost_by_depth`` and
+    ``iterations_by_depth`` belong to the largest component.
     """
     t0 = time.perf_counter()
     averager = RotationAverager(options)
@@ -306,7 +311,7 @@ def average_rotations(
     rotations = np.tile(np.eye(3), (num_nodes, 1, 1))
     kept = np.ones(i.size, bool)
     comp_anchor: list[int] = []
-    depth, costs, best_size = 0, {}, 0
+    depth, costs, iterations, best_size = 0, {}, {}, 0
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
         if label == 0 and anchor in nodes:
@@ -328,7 +333,9 @@ def average_rotations(
         kept[sel] = sol.kept
         if nodes.size > best_size:
             depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
-    return rotations, labels, comp_anchor, depth, kept, costs, time.perf_counter() - t0
+            iterations = sol.iterations_by_depth
+    return (rotations, labels, comp_anchor, depth, kept, costs, time.perf_counter() - t0,
+            iterations)
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:

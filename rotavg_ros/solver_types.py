@@ -123,3 +123,6 @@ class SolveResult:
     num_filtered: int
     cost_by_depth: dict[int, float]
     duration_s: float
+    iterations_by_depth: dict[int, int] = field(default_factory=dict)
+    """Iterations each depth's fit ran (largest component; dense mode: at most
+    ``iterations``, fewer when stopped early; 0 for the L-BFGS fit of sparse mode)."""

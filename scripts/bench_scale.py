@@ -38,7 +38,7 @@ def _child(n: int, degree: float, seed: int, q: Any) -> None:
     wall = time.perf_counter() - t0
     mode = next((s.split()[0] for _, s in marks if " mode:" in s), "?")
     fit_start = next((t for t, s in marks if " mode:" in s), t0)
-    iters = opts.iterations * len(opts.depths) if mode == "dense" else 0
+    iters = sum(res.iterations_by_depth.values()) if mode == "dense" else 0
     per_iter = (t0 + wall - fit_start) / iters * 1e3 if iters else float("nan")
     st = evaluate(dict(zip(res.node_ids, res.rotations, strict=True)), dict(enumerate(R)))
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
