@@ -8,8 +8,10 @@
   MCAP whose profile is not ``ros2``, ...), every ``.mcap`` file is read with the ``mcap``
   library's non-seeking :class:`~mcap.stream_reader.StreamReader`, record by record, with CRC
   checks, stopping at the first bad record; what was read before it is used (sorted by log
-  time). The same happens if rosbags fails in the middle of the bag: the stream reader then
-  delivers what rosbags had not delivered yet.
+  time). The same happens if rosbags' index is inconsistent (its topics hold fewer messages
+  than its total: a damaged summary), and if rosbags fails in the middle of the bag or
+  delivers fewer messages of a topic than indexed: the stream reader then delivers what
+  rosbags had not delivered.
 * Messages are decoded with a rosbags typestore: the Jazzy store plus the message definitions
   stored in the bag (types unknown to Jazzy are registered; a topic whose stored definition
   differs from Jazzy's gets its own store built from the bag's definition).
@@ -21,6 +23,7 @@ problems are collected in :attr:`BagSource.problems` as one-line texts for the r
 from __future__ import annotations
 
 import contextlib
+from collections import Counter
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -85,38 +88,56 @@ class BagSource:
     # ------------------------------------------------------------------ reading
     def read(self, topics: Collection[str]) -> Iterator[BagRecord]:
         """Records of ``topics`` in log-time order (ties: bag order); never raises for a
-        damaged bag, it records the problem and stops."""
+        damaged bag, it records the problem and stops.
+
+        With rosbags, if it fails in the middle or delivers fewer messages of a topic than
+        the index declares (a damaged chunk without CRC, a damaged summary), the files are
+        also read record by record and the records rosbags did not deliver follow, late and
+        in their own log-time order."""
         wanted = set(topics)
         if self._records is not None:
             yield from (r for r in self._records if r.topic in wanted)
             return
         assert self._rosbags is not None
         connections = [c for c in self._rosbags.connections if c.topic in wanted]
-        if not connections:
-            return
         last_time: int | None = None
-        seen_at_last: set[tuple[str, bytes]] = set()
+        delivered: Counter[tuple[str, int, int]] = Counter()
+        per_topic: Counter[str] = Counter()
         try:
-            for conn, t, data in self._rosbags.messages(connections=connections):
-                raw = bytes(data)
-                if t != last_time:
-                    last_time, seen_at_last = t, set()
-                seen_at_last.add((conn.topic, raw))
-                yield BagRecord(conn.topic, conn.msgtype, int(t), raw)
+            if connections:
+                for conn, t, data in self._rosbags.messages(connections=connections):
+                    raw = bytes(data)
+                    last_time = t
+                    delivered[(conn.topic, int(t), hash(raw))] += 1
+                    per_topic[conn.topic] += 1
+                    yield BagRecord(conn.topic, conn.msgtype, int(t), raw)
         except Exception as exc:  # noqa: BLE001 - a damaged bag: report and fall back
             where = "" if last_time is None else f" after bag time {last_time / 1e9:.3f} s"
             self.problems.append(
                 f"rosbags stopped reading{where}: {_describe(exc)}; reading the rest record "
                 f"by record with the mcap stream reader")
-            for rec in _scan_files(self._files, self.problems).records:
-                if rec.topic not in wanted:
-                    continue
-                if last_time is not None and (
-                    rec.log_time_ns < last_time
-                    or (rec.log_time_ns == last_time and (rec.topic, rec.data) in seen_at_last)
-                ):
-                    continue
-                yield rec
+        else:
+            short = {t: n for t in sorted(wanted)
+                     if per_topic[t] < (n := self.counts.get(t, 0))}
+            if not short:
+                return
+            self.problems.append(
+                "rosbags delivered fewer messages than the index declares ("
+                + ", ".join(f"{t}: {per_topic[t]} of {n}" for t, n in short.items())
+                + "); reading the bag record by record with the mcap stream reader for the "
+                "missing ones")
+        extra = 0
+        for rec in _scan_files(self._files, self.problems).records:
+            if rec.topic not in wanted:
+                continue
+            key = (rec.topic, rec.log_time_ns, hash(rec.data))
+            if delivered[key] > 0:
+                delivered[key] -= 1
+                continue
+            extra += 1
+            yield rec
+        self.problems.append(f"the mcap stream reader found {extra} message(s) of "
+                             f"{', '.join(sorted(wanted))} that rosbags had not delivered")
 
     # ------------------------------------------------------------------ decoding
     def decode(self, record: BagRecord) -> Any:
@@ -145,7 +166,7 @@ class BagSource:
 
 
 def _describe(exc: BaseException) -> str:
-    text = str(exc).strip() or "no details"
+    text = " ".join(str(exc).split()) or "no details"  # one line
     return f"{type(exc).__name__}: {text}"[:300]
 
 
@@ -278,6 +299,23 @@ def _has_mcap_magic(file: Path) -> bool:
         return False
 
 
+def _rosbags_source(path: Path, reader: Reader, store: Typestore,
+                    stores: dict[str, Typestore], problems: list[str]) -> BagSource:
+    topics: dict[str, str] = {}
+    counts: dict[str, int] = {}
+    for conn in reader.connections:
+        topics.setdefault(conn.topic, conn.msgtype)
+        counts[conn.topic] = counts.get(conn.topic, 0) + int(conn.msgcount)
+        if conn.msgtype != topics[conn.topic]:
+            problems.append(f"{conn.topic}: several message types ({topics[conn.topic]}, "
+                            f"{conn.msgtype}); using {topics[conn.topic]}")
+        _register(store, stores, conn.topic, conn.msgtype, conn.msgdef.format,
+                  conn.msgdef.data, problems)
+    start = reader.start_time if reader.message_count else None
+    return BagSource(path, "rosbags", topics, counts, dict(counts), start, problems,
+                     stores, store, reader, _storage_files(path))
+
+
 def open_bag(path: str | Path) -> BagSource:
     """Open a rosbag2 directory or a lone ``.mcap`` (see the module docstring)."""
     path = Path(path)
@@ -292,19 +330,14 @@ def open_bag(path: str | Path) -> BagSource:
     except Exception as exc:  # noqa: BLE001 - fall back to the stream reader
         reason = _describe(exc)
     else:
-        topics: dict[str, str] = {}
-        counts: dict[str, int] = {}
-        for conn in reader.connections:
-            topics.setdefault(conn.topic, conn.msgtype)
-            counts[conn.topic] = counts.get(conn.topic, 0) + int(conn.msgcount)
-            if conn.msgtype != topics[conn.topic]:
-                problems.append(f"{conn.topic}: several message types ({topics[conn.topic]}, "
-                                f"{conn.msgtype}); using {topics[conn.topic]}")
-            _register(store, stores, conn.topic, conn.msgtype, conn.msgdef.format,
-                      conn.msgdef.data, problems)
-        start = reader.start_time if reader.message_count else None
-        return BagSource(path, "rosbags", topics, counts, dict(counts), start, problems,
-                         stores, store, reader, _storage_files(path))
+        indexed = sum(int(conn.msgcount) for conn in reader.connections)
+        if indexed < reader.message_count:  # e.g. a damaged Channel record in the summary
+            reason = (f"its index is inconsistent: its topics hold {indexed} of its "
+                      f"{reader.message_count} messages")
+            with contextlib.suppress(Exception):
+                reader.close()
+        else:
+            return _rosbags_source(path, reader, store, stores, problems)
 
     files = _storage_files(path)
     if not files:

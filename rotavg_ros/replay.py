@@ -480,13 +480,18 @@ class Replayer:
             except DecodeError as exc:
                 stats.reject(UNDECODABLE, str(exc))
                 continue
-            transforms = msg.transforms if record.msgtype == TF_MESSAGE else [msg]
-            for tf in transforms:
-                R = _node_to_world_rotation(tf.transform.rotation)
-                if R is None or not tf.child_frame_id:
-                    stats.reject("invalid_ground_truth", f"{tf.child_frame_id!r}")
+            try:
+                transforms = msg.transforms if record.msgtype == TF_MESSAGE else [msg]
+                frames = [(tf.child_frame_id, _node_to_world_rotation(tf.transform.rotation))
+                          for tf in transforms]
+            except Exception as exc:  # noqa: BLE001 - decoded with an unexpected shape
+                stats.reject(UNDECODABLE, f"{type(exc).__name__}: {exc}")
+                continue
+            for child, R in frames:
+                if R is None or not isinstance(child, str) or not child:
+                    stats.reject("invalid_ground_truth", f"{child!r}")
                     continue
-                gt[tf.child_frame_id] = R.T  # world-to-node
+                gt[child] = R.T  # world-to-node
         if gt and stats.read:
             stats.used = len(gt)
 
