@@ -22,7 +22,11 @@ Conventions
 Interfaces (relative names live under the node's name, e.g. ``/rotavg_node/edges``)
 -------------------------------------------------------------------------------------
 * Subscriptions: ``~/edges`` (TransformStamped), ``~/edges_with_covariance`` (Odometry);
-  reliable, KEEP_LAST ``qos_depth`` (1000).
+  reliable, KEEP_LAST ``qos_depth`` (10000). A reliable KEEP_LAST reader drops its oldest
+  queued edge when more than ``qos_depth`` wait, however the publisher is configured: a
+  publisher that can get further ahead of the node than that (a burst, a replay at full speed)
+  needs a larger ``qos_depth`` and a reliable publisher that keeps unacknowledged edges
+  (KEEP_LAST depth >= the burst, or KEEP_ALL); see ``scripts/bench_node_stress.py``.
 * Publishers: ``~/orientations`` (TransformStamped, one per node per solve; reliable,
   KEEP_LAST ``orientations_qos_depth``), ``~/markers`` (MarkerArray), ``/diagnostics``
   (DiagnosticArray).
@@ -37,9 +41,13 @@ changed since the last attempt. Solves run on one worker thread
 (``ThreadPoolExecutor(max_workers=1)``), never on the executor thread, so subscriptions keep
 being served; edges that arrive during a solve go into the live graph and into the next solve.
 At most one solve runs at a time and timer solves never stack: a tick that finds a solve
-running is skipped and counted (``timer_ticks_skipped_busy``). A ``~/solve`` request queues at
-most one extra solve behind the running one (concurrent requests share it), so its answer
-reflects every edge accepted before the request.
+running (and the graph changed) is skipped and counted (``timer_ticks_skipped_busy``), and one
+follow-up solve starts as soon as the running one ends, however many ticks were skipped: the
+solve that includes an edge starts at most one period, or at the end of the solve running when
+it arrived, after it. A ``~/solve`` request queues at most one extra solve behind the running
+one, so its answer reflects every edge accepted before the request; requests are served one
+at a time (:meth:`RotavgNode.request_solve` callers that find a solve queued and not started
+share it).
 
 Every output of a solve (orientations, markers, diagnostics) carries the same stamp: the node
 clock's time when the graph snapshot for that solve was taken. Between solves, the timer
@@ -72,13 +80,25 @@ markers draw them in the ``detached_*`` namespaces with muted colours.
 
 Executors
 ---------
-The node works under ``SingleThreadedExecutor`` (what ``main`` uses) and
-``MultiThreadedExecutor``. ``~/solve`` is a coroutine callback that awaits the worker's future
-without blocking the executor (the worker wakes the executor with a guard condition when it
-finishes), so even a single-threaded executor keeps serving subscriptions while a service
-request waits for its solve. Subscriptions share one mutually exclusive callback group
-(messages are ingested one at a time, in order — this matters for ``repeat_policy`` latest /
-first); the timer and services use a reentrant group and coordinate through a lock.
+The node works under ``SingleThreadedExecutor`` (what ``main`` uses), ``MultiThreadedExecutor``
+and ``rclpy.experimental.EventsExecutor``; it uses no guard conditions and no coroutine
+callbacks, which the EventsExecutor of Jazzy (rclpy 7.1) does not support.
+
+Both subscriptions and ``~/solve`` share one mutually exclusive callback group, the *ingest*
+group: edges are ingested one at a time, in arrival order per topic (this matters for
+``repeat_policy`` latest / first), and whichever callback holds the group may take edges straight
+from the subscriptions' queues, since no executor thread takes from them meanwhile:
+
+* A subscription callback ingests its message, then up to ``INGEST_BATCH`` more edges already
+  queued. The wait-set executors rebuild their wait set for every message they deliver
+  (several hundred microseconds in rclpy 7.1, a few times the cost of ingesting an edge);
+  taking the queued edges in the callback pays that once per batch when the node falls behind.
+* ``~/solve`` queues a solve on the worker and blocks until it is published, taking queued
+  edges in the meantime (polling every ``SOLVE_POLL_S``), so ingestion goes on during the wait
+  even on a single-threaded executor. On a single-threaded executor the timer and the other
+  services wait until the answer; on a ``MultiThreadedExecutor`` they run meanwhile.
+
+The timer and the other services use a reentrant group and coordinate through a lock.
 """
 
 from __future__ import annotations
@@ -86,7 +106,7 @@ from __future__ import annotations
 import concurrent.futures
 import os
 import threading
-from collections.abc import Generator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -101,6 +121,7 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -142,6 +163,11 @@ from rotavg_ros.pipeline import (
 )
 from rotavg_ros.solver_types import SolveResult
 
+INGEST_BATCH = 256
+"""Queued edges a callback of the ingest group takes beyond the one it was given."""
+SOLVE_POLL_S = 0.01
+"""While ``~/solve`` waits for its solve, it looks for queued edges this often (s)."""
+
 
 def _warm_import() -> None:
     try:
@@ -156,22 +182,6 @@ class SolveOutcome:
 
     success: bool
     message: str
-
-
-class _AwaitFuture:
-    """Awaitable for a ``concurrent.futures.Future`` inside an rclpy coroutine callback.
-
-    rclpy re-runs a pending coroutine task on every executor wake-up; the worker triggers a
-    guard condition when it finishes so that wake-up happens promptly.
-    """
-
-    def __init__(self, future: concurrent.futures.Future[SolveOutcome]) -> None:
-        self._future = future
-
-    def __await__(self) -> Generator[None, None, SolveOutcome]:
-        while not self._future.done():
-            yield
-        return self._future.result()
 
 
 def _descriptor(
@@ -307,6 +317,7 @@ class RotavgNode(Node):
         self._current: concurrent.futures.Future[SolveOutcome] | None = None
         self._forced: concurrent.futures.Future[SolveOutcome] | None = None
         self._last_attempted_version = -1
+        self._tick_skipped = False  # a busy tick saw a changed graph: solve after the running one
         self._last_diag_received = -1
         self._closing = False
         # Held from the worker's "was the graph reset?" check to the end of its publishing,
@@ -350,16 +361,13 @@ class RotavgNode(Node):
         self._pub_markers = self.create_publisher(MarkerArray, "~/markers", 10)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._srv_solve = self.create_service(
-            Trigger, "~/solve", self._on_solve_request, callback_group=self._control_group
+            Trigger, "~/solve", self._on_solve_request, callback_group=self._ingest_group
         )
         self._srv_reset = self.create_service(
             Trigger, "~/reset", self._on_reset_request, callback_group=self._control_group
         )
         self._srv_save = self.create_service(
             Trigger, "~/save_graph", self._on_save_request, callback_group=self._control_group
-        )
-        self._wake = self.create_guard_condition(
-            lambda: None, callback_group=self._control_group
         )
         self._timer = self.create_timer(
             self.get_parameter("solve_period").value, self._on_timer,
@@ -388,7 +396,6 @@ class RotavgNode(Node):
             if forced is not None and not forced.running() and not forced.done():
                 return forced  # queued, not started: it will see every edge accepted so far
             future = self._pool.submit(self._solve_job, True)
-            future.add_done_callback(self._on_job_done)
             self._forced = future
             self._current = future
             return future
@@ -428,9 +435,32 @@ class RotavgNode(Node):
     # ------------------------------------------------------------------ ingestion
     def _on_transform(self, msg: TransformStamped) -> None:
         self._ingest(edge_from_transform(msg, self._settings.adapter))
+        self._take_queued(INGEST_BATCH)
 
     def _on_odometry(self, msg: Odometry) -> None:
         self._ingest(edge_from_odometry(msg, self._settings.adapter))
+        self._take_queued(INGEST_BATCH)
+
+    def _take_queued(self, limit: int) -> int:
+        """Take and ingest up to ``limit`` edges waiting in the subscriptions' queues.
+
+        Only for callbacks of the ingest group (see "Executors" in the module docstring).
+        Returns how many were taken.
+        """
+        taken = 0
+        for sub, adapt in ((self._sub_tf, edge_from_transform),
+                           (self._sub_odom, edge_from_odometry)):
+            while taken < limit:
+                try:
+                    with sub.handle:
+                        msg_info = sub.handle.take_message(sub.msg_type, sub.raw)
+                except InvalidHandle:  # destroyed: the node is shutting down
+                    return taken
+                if msg_info is None:
+                    break
+                self._ingest(adapt(msg_info[0], self._settings.adapter))
+                taken += 1
+        return taken
 
     def _ingest(self, item: EdgeMeasurement | Rejection) -> None:
         if not self._acc.add(item) and isinstance(item, Rejection):
@@ -449,6 +479,7 @@ class RotavgNode(Node):
             if busy:
                 if changed:
                     self._book.skipped_busy += 1
+                    self._tick_skipped = True
                 return
             if changed:
                 self._current = self._pool.submit(self._solve_job, False)
@@ -457,10 +488,17 @@ class RotavgNode(Node):
         if republish:  # counters moved (e.g. rejections) without a graph change
             self._publish_diagnostics(self.get_clock().now().to_msg(), stats)
 
-    async def _on_solve_request(
+    def _on_solve_request(
         self, request: Trigger.Request, response: Trigger.Response
     ) -> Trigger.Response:
-        outcome = await _AwaitFuture(self.request_solve())
+        future = self.request_solve()
+        while not future.done():  # keep ingesting: this callback holds the ingest group
+            if not self._take_queued(INGEST_BATCH):
+                concurrent.futures.wait([future], timeout=SOLVE_POLL_S)
+        try:
+            outcome = future.result()
+        except concurrent.futures.CancelledError:
+            outcome = SolveOutcome(False, "node is shutting down")
         response.success = outcome.success
         response.message = outcome.message
         return response
@@ -495,12 +533,6 @@ class RotavgNode(Node):
             return False, f"could not write {self._graph_file}: {exc}"
         return True, f"saved {count} measurements to {self._graph_file}"
 
-    def _on_job_done(self, _future: concurrent.futures.Future[SolveOutcome]) -> None:
-        try:
-            self._wake.trigger()
-        except Exception:  # noqa: BLE001 - node already destroyed
-            pass
-
     # ------------------------------------------------------------------ worker
     def _solve_job(self, force: bool) -> SolveOutcome:
         """Runs on the worker thread: snapshot, solve, publish."""
@@ -511,6 +543,19 @@ class RotavgNode(Node):
                 return SolveOutcome(False, "node is shutting down")
             self.get_logger().error(f"solve job failed: {exc!r}")
             return SolveOutcome(False, f"internal error: {exc!r}")
+        finally:
+            self._follow_up()
+
+    def _follow_up(self) -> None:
+        """End of a job: queue the solve that busy timer ticks skipped (one, however many)."""
+        with self._sched_lock:
+            if not self._tick_skipped or self._closing:
+                return
+            self._tick_skipped = False
+            queued = self._current
+            if queued is not None and not queued.running() and not queued.done():
+                return  # the ~/solve job queued behind this one sees those edges too
+            self._current = self._pool.submit(self._solve_job, False)
 
     def _solve_and_publish(self, force: bool) -> SolveOutcome:
         if self._closing:

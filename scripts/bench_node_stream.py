@@ -278,6 +278,49 @@ def fmt_pf(ok: bool) -> str:
     return "PASS" if ok else "FAIL"
 
 
+def launch_node(node_cmd: list[str]) -> tuple[subprocess.Popen[bytes], Path]:
+    """Start the node process (its own session; output to a temporary log file)."""
+    log_fd, log_name = tempfile.mkstemp(prefix="bench_rotavg_node_", suffix=".log")
+    env = dict(os.environ)
+    env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)  # let the child bootstrap itself
+    proc = subprocess.Popen(node_cmd, env=env, stdout=log_fd, stderr=subprocess.STDOUT,
+                            stdin=subprocess.DEVNULL, start_new_session=True)
+    os.close(log_fd)
+    return proc, Path(log_name)
+
+
+def start_watchdog(proc: subprocess.Popen[bytes], seconds: float) -> threading.Timer:
+    """After ``seconds``, kill the node and exit this process (code 3); cancel it when done."""
+    def watchdog() -> None:
+        print(f"HARD TIMEOUT after {seconds:g} s: killing the node", flush=True)
+        try:
+            proc.kill()
+        finally:
+            os._exit(3)
+
+    timer = threading.Timer(seconds, watchdog)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
+def wait_node_idle(proc: subprocess.Popen[bytes], log_path: Path, until: float) -> ProcSample:
+    """Wait until the node uses < 10% of a core (its start-up imports are done) or ``until``.
+
+    Raises ``RuntimeError`` if the process is gone.
+    """
+    prev = proc_sample(proc.pid)
+    while True:
+        time.sleep(0.5)
+        cur = proc_sample(proc.pid)
+        if prev is None or cur is None:
+            raise RuntimeError(f"node process vanished:\n{tail(log_path)}")
+        busy_frac = (cur.cpu_s - prev.cpu_s) / (cur.t - prev.t)
+        prev = cur
+        if busy_frac < 0.1 or time.monotonic() >= until:
+            return prev
+
+
 # ---------------------------------------------------------------------- main
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
@@ -351,24 +394,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"code: {code_version()}")
     print(f"env: ROS_DOMAIN_ID={domain_id} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST")
 
-    log_fd, log_name = tempfile.mkstemp(prefix="bench_rotavg_node_", suffix=".log")
-    log_path = Path(log_name)
-    env = dict(os.environ)
-    env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)  # let the child bootstrap itself
-    proc = subprocess.Popen(node_cmd, env=env, stdout=log_fd, stderr=subprocess.STDOUT,
-                            stdin=subprocess.DEVNULL, start_new_session=True)
-    os.close(log_fd)
-
-    def watchdog() -> None:
-        print(f"HARD TIMEOUT after {args.hard_timeout:g} s: killing the node", flush=True)
-        try:
-            proc.kill()
-        finally:
-            os._exit(3)
-
-    timer = threading.Timer(args.hard_timeout, watchdog)
-    timer.daemon = True
-    timer.start()
+    proc, log_path = launch_node(node_cmd)
+    timer = start_watchdog(proc, args.hard_timeout)
 
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -420,17 +447,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"matched {time.monotonic() - t_launch:.2f} s after the node was launched")
         # The node imports the solver (torch) on its worker thread at start-up; wait until it
         # is idle so that the stream measures the steady state, not the start-up.
-        prev = proc_sample(proc.pid)
-        t_idle = time.monotonic()
-        while time.monotonic() < min(deadline, t_idle + args.match_timeout):
-            time.sleep(0.5)
-            cur = proc_sample(proc.pid)
-            if prev is None or cur is None:
-                raise RuntimeError(f"node process vanished:\n{tail(log_path)}")
-            busy_frac = (cur.cpu_s - prev.cpu_s) / (cur.t - prev.t)
-            prev = cur
-            if busy_frac < 0.1:
-                break
+        prev = wait_node_idle(proc, log_path,
+                              min(deadline, time.monotonic() + args.match_timeout))
         print(f"node idle {time.monotonic() - t_launch:.2f} s after launch "
               f"(start-up CPU {prev.cpu_s:.2f} s)")
         samples["start"] = prev

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
 from ros_fixtures import (
     DOMAIN_ID,
@@ -45,6 +46,8 @@ from rotavg_ros.solver_types import SolveResult, SolverOptions
 from rotavg_ros.view_graph import ViewGraph
 
 REPO = Path(__file__).resolve().parents[1]
+EXECUTORS = {"single": SingleThreadedExecutor, "multi": MultiThreadedExecutor,
+             "events": EventsExecutor}
 FAST_SOLVER = [
     Parameter("iterations", value=300),
     Parameter("depths", value=[2, 4]),
@@ -263,11 +266,10 @@ def test_save_graph_without_file_is_refused() -> None:
 
 
 # ---------------------------------------------------------------------- services
-@pytest.mark.parametrize("executor", ["single", "multi"])
+@pytest.mark.parametrize("executor", list(EXECUTORS))
 def test_solve_and_reset_services(executor: str) -> None:
-    factory = SingleThreadedExecutor if executor == "single" else MultiThreadedExecutor
     gt = chain_gt(3, seed=4)
-    with RosHarness(factory) as h:
+    with RosHarness(EXECUTORS[executor]) as h:
         node, client = start_pair(h)
         assert not client.solve().success  # empty graph
         client.send_edge("n0", "n1", rel(gt, "n0", "n1"))
@@ -351,44 +353,107 @@ def test_memory_stays_bounded_over_many_solves(ros: RosHarness) -> None:  # noqa
 
 
 # ---------------------------------------------------------------------- concurrency
-@pytest.mark.parametrize("executor", ["single", "multi"])
+@pytest.mark.parametrize("executor", list(EXECUTORS))
 def test_long_solve_does_not_block_ingestion(executor: str) -> None:
-    factory = SingleThreadedExecutor if executor == "single" else MultiThreadedExecutor
-    gt = chain_gt(12, seed=6)
+    gt = chain_gt(16, seed=6)
     started, release = threading.Event(), threading.Event()
+    calls: list[int] = []
 
     def slow_solve(graph: ViewGraph, anchor: Hashable | None,
                    options: SolverOptions) -> SolveResult:
+        calls.append(graph.num_measurements)
         started.set()
         release.wait(timeout=30.0)
         return spanning_tree_solve(graph, anchor, options)
 
-    with RosHarness(factory) as h:
+    def send(ks: range) -> None:
+        for k in ks:
+            client.send_edge(f"n{k}", f"n{k + 1}", rel(gt, f"n{k}", f"n{k + 1}"))
+
+    with RosHarness(EXECUTORS[executor]) as h:
         node, client = start_pair(h, solve_fn=slow_solve,
                                   overrides=[Parameter("solve_period", value=0.05)])
         try:
-            for k in range(3):
-                client.send_edge(f"n{k}", f"n{k + 1}", rel(gt, f"n{k}", f"n{k + 1}"))
+            send(range(3))
             wait_received(node, 3)
             assert started.wait(10.0), "the timer did not start a solve"
-            pending = client.solve_client.call_async(Trigger.Request())
-            for k in range(3, 11):  # published while the solve is blocked
-                client.send_edge(f"n{k}", f"n{k + 1}", rel(gt, f"n{k}", f"n{k + 1}"))
-            wait_received(node, 11)
-            assert not release.is_set() and not pending.done()
-            assert node.accumulator.stats().accepted == 11
+            send(range(3, 8))  # published while the timer's solve is blocked
+            wait_received(node, 8)
             time.sleep(0.25)  # timer ticks (every 0.05 s) find the solve running: skipped
-            assert not pending.done()
+            assert calls == [3]
+            pending = client.solve_client.call_async(Trigger.Request())
+            send(range(8, 15))  # published while ~/solve waits behind the blocked solve
+            wait_received(node, 15)
+            assert not release.is_set() and not pending.done()
+            assert node.accumulator.stats().accepted == 15
         finally:
             release.set()
         assert wait_until(pending.done, 30.0)
         response = pending.result()
-        # The service's solve was queued behind the running one and saw all 11 edges.
-        assert response.success and "12 nodes" in response.message, response.message
-        assert wait_until(lambda: len(client.latest_orientations()) == 12)
+        # The service's solve was queued behind the running one and saw all 15 edges.
+        assert response.success and "16 nodes" in response.message, response.message
+        assert calls == [3, 15]
+        assert wait_until(lambda: len(client.latest_orientations()) == 16)
         assert aligned_errors_deg(client.latest_orientations(), gt).max() < 1e-4
         assert wait_until(lambda: (d := client.latest_diagnostics()) is not None
                           and int(d[2]["timer_ticks_skipped_busy"]) > 0)
+
+
+def test_skipped_tick_is_solved_as_soon_as_the_running_solve_ends(ros: RosHarness) -> None:  # noqa: F811
+    """Edges that arrive during a solve are solved right after it, not at the next tick."""
+    period = 0.5
+    gt = chain_gt(4, seed=14)
+    starts: list[float] = []
+    release = threading.Event()
+
+    def slow_solve(graph: ViewGraph, anchor: Hashable | None,
+                   options: SolverOptions) -> SolveResult:
+        starts.append(time.monotonic())
+        release.wait(timeout=30.0)
+        return spanning_tree_solve(graph, anchor, options)
+
+    node, client = start_pair(ros, solve_fn=slow_solve,
+                              overrides=[Parameter("solve_period", value=period)])
+    try:
+        client.send_edge("n0", "n1", rel(gt, "n0", "n1"))
+        assert wait_until(lambda: len(starts) == 1, 10.0)
+        client.send_edge("n1", "n2", rel(gt, "n1", "n2"))
+        client.send_edge("n2", "n3", rel(gt, "n2", "n3"))
+        wait_received(node, 3)
+        # Release half-way between the tick that found the solve busy and the next one.
+        time.sleep(max(0.0, starts[0] + 1.5 * period - time.monotonic()))
+    finally:
+        t_release = time.monotonic()
+        release.set()
+    assert wait_until(lambda: len(starts) == 2, 10.0)
+    assert starts[1] - t_release < 0.4 * period, starts[1] - t_release
+    assert wait_until(lambda: len(client.latest_orientations()) == 4)
+    assert node.last_result is not None and len(node.last_result.node_ids) == 4
+
+
+@pytest.mark.parametrize("executor", list(EXECUTORS))
+def test_edge_burst_on_both_topics_is_counted_exactly(executor: str) -> None:
+    """A burst on both topics (queued edges are taken in batches): every edge counted once."""
+    n = 200
+    gt = chain_gt(n, seed=13)
+    with RosHarness(EXECUTORS[executor]) as h:
+        node, client = start_pair(h)
+        sent = 0
+        for rep in range(3):
+            for k in range(n - 1):
+                client.send_edge(f"n{k}", f"n{k + 1}", rel(gt, f"n{k}", f"n{k + 1}"),
+                                 odometry=(k + rep) % 2 == 1)
+                sent += 1
+            client.send_transform("x", "x", [0.0, 0.0, 0.0, 1.0])  # rejected: self-loop
+            sent += 1
+        wait_received(node, sent)
+        time.sleep(0.1)
+        stats = node.accumulator.stats()
+        assert (stats.received, stats.accepted, stats.rejected["self_loop"]) == (sent, sent - 3, 3)
+        assert stats.num_nodes == n and stats.num_measurements == 3 * (n - 1)
+        assert client.solve().success
+        assert wait_until(lambda: len(client.latest_orientations()) == n)
+        assert aligned_errors_deg(client.latest_orientations(), gt).max() < 1e-4
 
 
 def test_solver_error_keeps_last_result_and_reports_error(ros: RosHarness) -> None:  # noqa: F811
