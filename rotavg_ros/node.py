@@ -257,7 +257,8 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "device": _descriptor(
         "Torch device of the solver, e.g. cpu or cuda:0.", constraints="torch device string"),
     "threads": _descriptor(
-        "Torch CPU threads for the solver; 0 = torch's default.", int_range=(0, 1024)),
+        "Torch CPU threads for the solver, split among the depth candidates; 0 = one "
+        "thread per candidate, candidates in parallel up to the CPU count.", int_range=(0, 1024)),
     "publish_markers": _descriptor(
         "Publish ~/markers (RViz MarkerArray) after solves, when something subscribes."),
     "marker_spacing": _descriptor(
