@@ -337,35 +337,49 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--order", choices=("chain-first", "shuffled"), default="chain-first",
                    help="stream order: the chain first, then the extra edges shuffled; or "
                         "everything shuffled")
+    p.add_argument("--tolerance", type=float, default=0.25,
+                   help="latency allowance (s) for DDS transport, the node's publication of "
+                        "the orientations and this process's executor")
+    p.add_argument("--drain-timeout", type=float, default=15.0,
+                   help="after the first final-looking diagnostics, wait this long for "
+                        "received == sent")
+    add_node_run_arguments(p, hard_timeout=900.0)
+    return p.parse_args(argv)
+
+
+def add_node_run_arguments(p: argparse.ArgumentParser, hard_timeout: float) -> None:
+    """Options both node benchmarks share: node launch, discovery and time limits."""
     p.add_argument("--extra-node-args", default=DEFAULT_EXTRA_NODE_ARGS,
                    help="extra node arguments after '--ros-args' (one shell-quoted string; "
                         "pass it as --extra-node-args='...')")
     p.add_argument("--domain-id", type=int, default=None,
                    help="ROS_DOMAIN_ID (default: 100 + pid %% 100)")
-    p.add_argument("--tolerance", type=float, default=0.25,
-                   help="latency allowance (s) for DDS transport, the node's publication of "
-                        "the orientations and this process's executor")
     p.add_argument("--match-timeout", type=float, default=60.0,
                    help="wait this long for the node to start and the topics to match")
-    p.add_argument("--drain-timeout", type=float, default=15.0,
-                   help="after the first final-looking diagnostics, wait this long for "
-                        "received == sent")
-    p.add_argument("--hard-timeout", type=float, default=900.0,
+    p.add_argument("--hard-timeout", type=float, default=hard_timeout,
                    help="abort the whole run (and kill the node) after this many seconds")
     p.add_argument("--verbose", action="store_true",
                    help="print the timeline of the node's diagnostics")
     p.add_argument("--node-bin", default=str(REPO_ROOT / ".venv/bin/rotavg_node"))
-    return p.parse_args(argv)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+def begin_run(args: argparse.Namespace) -> tuple[float, float, int]:
+    """``(t_start, deadline, domain_id)``; sets localhost discovery and the domain id.
+
+    Waiting stops at ``deadline``, early enough to report and shut the node down before the
+    watchdog fires at ``--hard-timeout``.
+    """
     t_start = time.monotonic()
-    # Waiting stops early enough to report and shut the node down before the watchdog fires.
     deadline = t_start + max(0.8 * args.hard_timeout, args.hard_timeout - 30.0)
     domain_id = args.domain_id if args.domain_id is not None else 100 + os.getpid() % 100
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ["ROS_DOMAIN_ID"] = str(domain_id)
+    return t_start, deadline, domain_id
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    t_start, deadline, domain_id = begin_run(args)
 
     graph = make_graph(args.nodes, args.edges, args.seed, args.noise_deg, args.outliers,
                        args.order)

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import shlex
 import signal
 import sys
@@ -59,10 +58,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_node_stream import (  # noqa: E402
     NODE_NAME,
-    REPO_ROOT,
     DiagRecord,
     Observer,
     ProcSample,
+    add_node_run_arguments,
+    begin_run,
     code_version,
     fmt_pf,
     launch_node,
@@ -75,8 +75,6 @@ from bench_node_stream import (  # noqa: E402
 )
 
 from rotavg_ros.so3 import matrix_to_quat  # noqa: E402
-
-DEFAULT_EXTRA_NODE_ARGS = "-p depths:=[2] -p iterations:=300"
 
 
 def descendants(pid: int) -> list[int]:
@@ -120,33 +118,18 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--pub-depth", type=int, default=None,
                    help="depth of the publisher's KEEP_LAST history (default: the number of "
                         "edges)")
-    p.add_argument("--extra-node-args", default=DEFAULT_EXTRA_NODE_ARGS,
-                   help="extra node arguments after '--ros-args' (one shell-quoted string; "
-                        "pass it as --extra-node-args='...')")
-    p.add_argument("--domain-id", type=int, default=None,
-                   help="ROS_DOMAIN_ID (default: 100 + pid %% 100)")
-    p.add_argument("--match-timeout", type=float, default=60.0,
-                   help="wait this long for the node to start and the topics to match")
     p.add_argument("--publish-timeout", type=float, default=600.0,
                    help="stop publishing after this many seconds (a stalled publisher)")
     p.add_argument("--stall-timeout", type=float, default=30.0,
                    help="give up waiting for received == sent after this long without any "
                         "progress in the node's diagnostics")
-    p.add_argument("--hard-timeout", type=float, default=1200.0,
-                   help="abort the whole run (and kill the node) after this many seconds")
-    p.add_argument("--verbose", action="store_true",
-                   help="print the timeline of the node's diagnostics")
-    p.add_argument("--node-bin", default=str(REPO_ROOT / ".venv/bin/rotavg_node"))
+    add_node_run_arguments(p, hard_timeout=1200.0)
     return p.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    t_start = time.monotonic()
-    deadline = t_start + max(0.8 * args.hard_timeout, args.hard_timeout - 30.0)
-    domain_id = args.domain_id if args.domain_id is not None else 100 + os.getpid() % 100
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    os.environ["ROS_DOMAIN_ID"] = str(domain_id)
+    t_start, deadline, domain_id = begin_run(args)
 
     graph = make_graph(args.nodes, args.edges, args.seed, 1.0, 0.05)
     E = graph.i.size
