@@ -4,7 +4,9 @@ Solves ``min sum_ij w_ij ||R_i - R_ij R_j||_F^2`` over unconstrained 3x3 blocks 
 anchor (node 0) fixed to identity, then projects each block onto SO(3). ``R_i`` is
 world-to-node and ``R_ij ~= R_i R_j^T``, so ``R_i = R_ij R_j`` for exact data. This is the
 classic linear relaxation (Martinec & Pajdla; GTSAM's chordal initialisation): one sparse
-SPD solve, O(N + E) memory.
+SPD solve, O(N + E) memory. SuperLU runs in symmetric mode with a minimum-degree ordering
+of A + A^T (what suits an SPD matrix); its default column ordering filled in 4x more on a
+random 1000-node graph (0.9 s against 0.2 s) and was never faster on the SE-Sync graphs.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
-from scipy.sparse.linalg import spsolve
+from scipy.sparse.linalg import splu
 
 from rotavg_ros.so3 import project_to_so3
 
@@ -48,8 +50,10 @@ def chordal_rotations(
                    shape=(n3, n3)).tocsr()
     # Fix node 0 to identity: move its columns to the right-hand side.
     free = np.arange(3, n3)
-    rhs = -L[free][:, :3] @ np.eye(3)
-    X = spsolve(L[free][:, free].tocsc(), rhs)
+    rhs = -(L[free][:, :3] @ np.eye(3))
+    lu = splu(L[free][:, free].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+              options={"SymmetricMode": True})
+    X = lu.solve(np.ascontiguousarray(rhs))
     X = np.asarray(X).reshape(num_nodes - 1, 3, 3)
     out = np.concatenate([np.eye(3)[None], X])
     return project_to_so3(out)

@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 
 from rotavg_ros.adam import Adam
 from rotavg_ros.factor_chain import FactorChain
+from rotavg_ros.lbfgs import minimize_lbfgs
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -128,6 +129,17 @@ def _product(factors: list[torch.Tensor]) -> torch.Tensor:
     for w in reversed(factors[:-1]):
         out = w @ out
     return out
+
+
+LBFGS_FTOL = 1e-12
+"""Sparse mode: an L-BFGS run ends when a step lowers the loss by less than this,
+relative to max(|loss|, 1)."""
+ROUND_TOLERANCE = 1e-3
+"""Sparse mode: the reweighting rounds end when one moves the factors by less than this,
+relative (|x - x_prev| / |x|). On sphere2500 (no outliers) later rounds only shaved the
+noise tail, 0.5-0.8 s each, and left the errors as they were (median 0.381 vs 0.379 deg
+after all 8); on a stream graph with 5% outliers the rounds that mattered moved x by
+1e-1 to 1e-2."""
 
 
 def _lr_at(step: int, s: DMFSettings) -> float:
@@ -308,31 +320,45 @@ def fit_symmetric_lbfgs(
     weight while gross outliers are scaled down by ``outlier_factor * tau / r``. Residuals
     are first scaled by sqrt(initial weight), so each edge is judged against its own
     stated noise level (SLAM graphs mix very different information matrices); the
-    rounds stop early once no edge is above that threshold.
+    rounds stop early once no edge is above that threshold, or once a round moved the
+    factors by less than ``ROUND_TOLERANCE`` (relative).
+
+    The optimiser is :func:`~rotavg_ros.lbfgs.minimize_lbfgs` (float64, at most
+    ``inner_iterations`` steps per round, ending early when a step improves the loss by
+    less than ``LBFGS_FTOL`` relative); the gradient through the factors comes from
+    :class:`~rotavg_ros.factor_chain.FactorChain`.
     """
     dev = s.device
+    f64 = torch.float64
     gen = torch.Generator().manual_seed(s.seed)
     shapes = factor_shapes(num_nodes, s.depth, s.hidden_width)
-    factors = _warm_factors(H0, shapes, s.init_scale, gen, dev)
+    start = _warm_factors(H0, shapes, s.init_scale, gen, dev)
+    x = torch.cat([f.detach().reshape(-1) for f in start])
+    flat = torch.zeros_like(x)  # the factors are views into it
+    flat_grad = torch.zeros_like(flat)
+    factors, offset = [], 0
+    for rows, cols in shapes:
+        factors.append(flat[offset:offset + rows * cols].view(rows, cols))
+        offset += rows * cols
+    chain = FactorChain(factors)
+    offset = 0
+    for f in factors:
+        f.grad = flat_grad[offset:offset + f.numel()].view_as(f)
+        offset += f.numel()
     blocks = EdgeBlocks(num_nodes, i, j, dev)
-    tR = torch.as_tensor(R, dtype=torch.float64, device=dev).permute(1, 2, 0).contiguous()
-    weights = torch.as_tensor(w, dtype=torch.float64, device=dev).clone()
+    tR = torch.as_tensor(R, dtype=f64, device=dev).permute(1, 2, 0).contiguous()
+    weights = torch.as_tensor(w, dtype=f64, device=dev).clone()
     noise_scale = weights.sqrt()  # residual x sqrt(information): comparable across edges
-    eye = torch.eye(3, dtype=torch.float64, device=dev)[:, :, None]
+    eye = torch.eye(3, dtype=f64, device=dev)[:, :, None]
     delta = max(s.huber_delta, 1e-9)
 
     def huber(x: torch.Tensor) -> torch.Tensor:
         a = x.abs()
         return torch.where(a <= delta, 0.5 * x * x / delta, a - 0.5 * delta)
 
-    opt = torch.optim.LBFGS(factors, lr=1.0, max_iter=inner_iterations, history_size=20,
-                            tolerance_grad=1e-10, tolerance_change=1e-14,
-                            line_search_fn="strong_wolfe")
-
-    def closure() -> torch.Tensor:
-        opt.zero_grad(set_to_none=True)
-        H = _product(factors).view(num_nodes, 3, 3)
-        Hn = nodes_from_stacked(H.detach())
+    def loss_and_grad(x: torch.Tensor) -> tuple[float, torch.Tensor]:
+        flat.copy_(x)
+        Hn = nodes_from_h_t(chain.forward())
         Hi, Hj, P = blocks.products(Hn)
         D = P.sub_(tR)
         Dd = soa_matmul(Hn, Hn, transpose_b=True).sub_(eye)
@@ -340,28 +366,30 @@ def fit_symmetric_lbfgs(
         G = (D / delta).clamp_(-1.0, 1.0).mul_(weights)
         grad = blocks.node_gradient(G, Hi, Hj)
         grad.add_(soa_matmul((Dd / delta).clamp_(-1.0, 1.0), Hn), alpha=2.0 * s.diagonal_weight)
-        H.backward(grad.permute(2, 0, 1))
-        return loss
+        chain.backward(h_t_from_nodes(grad))
+        return float(loss), flat_grad.clone()
 
-    loss_val = float("nan")
+    loss_val, total = float("nan"), 0
     for rnd in range(rounds):
-        opt.state.clear()  # the weights changed: start a fresh curvature history
-        loss_val = float(opt.step(closure))
+        res = minimize_lbfgs(loss_and_grad, x, inner_iterations, ftol=LBFGS_FTOL)
+        moved = float((res.x - x).norm() / res.x.norm().clamp_min(1e-30))
+        x, loss_val, total = res.x, res.loss, total + res.iterations
         if progress is not None:
-            progress((rnd + 1) * inner_iterations, loss_val)
-        if not s.reweighting or rnd + 1 == rounds:
-            continue
+            progress(total, loss_val)
+        if not s.reweighting or rnd + 1 == rounds or (rnd > 0 and moved < ROUND_TOLERANCE):
+            break
         with torch.no_grad():
-            Hn = nodes_from_stacked(_product(factors).view(num_nodes, 3, 3))
+            flat.copy_(x)
+            Hn = nodes_from_h_t(chain.forward())
             r = blocks.products(Hn)[2].sub_(tR).pow(2).sum(dim=(0, 1)).sqrt() * noise_scale
             thresh = outlier_factor * torch.median(r)
             scale = torch.where(r > thresh, thresh / r.clamp_min(1e-12), torch.ones_like(r))
             weights *= scale
             if float((1.0 - scale).abs().max()) < 1e-3:
                 break  # no edge is an outlier any more: converged
-    with torch.no_grad():
-        H = _product(factors).view(num_nodes, 3, 3)
-    return DMFFit(H.detach().cpu().numpy(), weights.cpu().numpy(), loss_val)
+    flat.copy_(x)
+    H = chain.product().reshape(num_nodes, 3, 3)
+    return DMFFit(H.cpu().numpy().copy(), weights.cpu().numpy(), loss_val, total)
 
 
 def fit_vanilla(

@@ -315,7 +315,10 @@ class RotavgNode(Node):
 
         # Scheduling state, guarded by _sched_lock.
         self._sched_lock = threading.Lock()
-        self._current: concurrent.futures.Future[SolveOutcome] | None = None
+        # Jobs submitted to the worker whose _follow_up has not run yet: a timer tick that
+        # sees one is "busy". Counted, not read from futures, so no tick can slip in between
+        # a job's follow-up check and its future completing (that lost a follow-up solve).
+        self._jobs_pending = 0
         self._forced: concurrent.futures.Future[SolveOutcome] | None = None
         self._last_attempted_version = -1
         self._tick_skipped = False  # a busy tick saw a changed graph: solve after the running one
@@ -396,9 +399,8 @@ class RotavgNode(Node):
             forced = self._forced
             if forced is not None and not forced.running() and not forced.done():
                 return forced  # queued, not started: it will see every edge accepted so far
-            future = self._pool.submit(self._solve_job, True)
+            future = self._submit_locked(force=True)
             self._forced = future
-            self._current = future
             return future
 
     def destroy_node(self) -> None:
@@ -475,7 +477,7 @@ class RotavgNode(Node):
         with self._sched_lock:
             if self._closing:
                 return
-            busy = self._current is not None and not self._current.done()
+            busy = self._jobs_pending > 0
             changed = stats.version != self._last_attempted_version
             if busy:
                 if changed:
@@ -483,7 +485,7 @@ class RotavgNode(Node):
                     self._tick_skipped = True
                 return
             if changed:
-                self._current = self._pool.submit(self._solve_job, False)
+                self._submit_locked(force=False)
                 return
             republish = stats.received != self._last_diag_received
         if republish:  # counters moved (e.g. rejections) without a graph change
@@ -547,16 +549,22 @@ class RotavgNode(Node):
         finally:
             self._follow_up()
 
+    def _submit_locked(self, force: bool) -> concurrent.futures.Future[SolveOutcome]:
+        """Queue a solve job on the worker; the caller holds ``_sched_lock``."""
+        future = self._pool.submit(self._solve_job, force)
+        self._jobs_pending += 1  # the job's _follow_up waits for this lock to decrement
+        return future
+
     def _follow_up(self) -> None:
         """End of a job: queue the solve that busy timer ticks skipped (one, however many)."""
         with self._sched_lock:
+            self._jobs_pending -= 1
             if not self._tick_skipped or self._closing:
                 return
             self._tick_skipped = False
-            queued = self._current
-            if queued is not None and not queued.running() and not queued.done():
+            if self._jobs_pending > 0:
                 return  # the ~/solve job queued behind this one sees those edges too
-            self._current = self._pool.submit(self._solve_job, False)
+            self._submit_locked(force=False)
 
     def _solve_and_publish(self, force: bool) -> SolveOutcome:
         if self._closing:

@@ -71,8 +71,10 @@ class SolverOptions:
     sparse_outlier_factor: float = 5.0
     """Sparse mode: edges whose noise-scaled residual exceeds this x the median are
     down-weighted between L-BFGS runs."""
-    warm_iterations: int = 150
-    """Dense mode, warm-started re-solve: Adam iterations (vs ``iterations`` cold)."""
+    warm_iterations: int = 100
+    """Dense mode, warm-started re-solve: Adam iterations (vs ``iterations`` cold). 100
+    was as accurate as 150 (2000 nodes +1% edges: median 0.288 vs 0.291 deg; a 1000-node
+    stream: 0.369 vs 0.394) in two thirds of the time; 50 lost accuracy."""
     warm_lr: float = 1e-3
     """Dense mode, warm-started re-solve: initial learning rate."""
     warm_min_known: float = 0.5
