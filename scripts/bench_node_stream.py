@@ -65,12 +65,14 @@ from rotavg_ros.so3 import matrix_to_quat, quat_to_matrix, random_rotations  # n
 NODE_NAME = "rotavg_node"
 DIAG_NAME = f"{NODE_NAME}: rotation averaging"
 # Node parameters this benchmark passes unless --extra-node-args overrides them (later -p
-# wins). Measured offline on a shared 2-core machine with the default graph (1000 nodes,
-# 20,000 edges, dense DMF): the node's defaults (depths 2,4,6,8 x 1000 Adam iterations) did
-# not finish one solve in 10 min (killed; another job used one core); depths [2, 4] x 300
-# iterations took 81 s; depth 2 alone took 25 s with 1000 iterations and 1.8-4.3 s with 300,
-# which already converges (0.37 deg mean error). So the benchmark runs the dense DMF at
-# depth 2 with 300 iterations by default.
+# wins). Measured in process on an idle 2-core machine with the default graph (1000 nodes,
+# 20,000 edges, dense DMF), cold: the node's defaults (depths 2,4,6,8 x up to 1000 Adam
+# iterations) took 6.8 s (depth 8, 0.49 deg mean error), depth 2 x 300 iterations 0.7 s
+# (0.37 deg). The node warm-starts most re-solves (one depth, 100 iterations), but a cold
+# solve runs whenever the previous solution covers under half of the nodes, and a 6.8 s
+# solve on both cores mid-stream delays the final one (8 of 10 runs met the latency bound
+# with the defaults, 10 of 10 with these settings). So the benchmark runs the dense DMF at
+# depth 2 with 300 iterations by default; --extra-node-args='' runs the node's defaults.
 DEFAULT_EXTRA_NODE_ARGS = "-p depths:=[2] -p iterations:=300"
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
@@ -400,10 +402,9 @@ def main(argv: list[str] | None = None) -> int:
     ]
     if args.extra_node_args == DEFAULT_EXTRA_NODE_ARGS:
         print(f"NOTE: the node runs with the benchmark's default extra args {extra}, not the "
-              "node's solver defaults (depths 2,4,6,8 x 1000 iterations): one solve of the "
-              "default graph with those did not finish in 10 min on a shared 2-core machine "
-              "(depth 2 x 300 iterations: 2-4 s). Pass --extra-node-args='' for the node's "
-              "defaults.")
+              "node's solver defaults (depths 2,4,6,8 x 1000 iterations; a cold solve of the "
+              "default graph: 6.8 s with those, 0.7 s with depth 2 x 300 iterations). Pass "
+              "--extra-node-args='' for the node's defaults.")
     print(f"node: {shlex.join(node_cmd)}")
     print(f"code: {code_version()}")
     print(f"env: ROS_DOMAIN_ID={domain_id} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST")
