@@ -250,6 +250,10 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
         "Run the solver in a child process (default) so a long solve cannot starve the "
         "subscriptions of the interpreter lock; false runs it in the worker thread.",
         read_only=True),
+    "solver_niceness": _descriptor(
+        "Added to the solver child process's nice value (POSIX), so solves use the CPU the "
+        "node and its neighbours (a SLAM front end) leave idle; 0 = same priority as the "
+        "node.", int_range=(0, 19), read_only=True),
     "warm_start": _descriptor(
         "Warm-start each re-solve from the previous solution (known nodes keep their "
         "rotation, new ones start from the spanning tree; dense mode then runs a short "
@@ -303,7 +307,7 @@ class RotavgNode(Node):
         # with the subscriptions) when ``solve_in_subprocess``, in the worker thread otherwise.
         self._solve_fn: SolveFn | None = solve_fn
         self._runner: SubprocessSolver | None = (
-            SubprocessSolver() if solve_fn is None
+            SubprocessSolver(self.get_parameter("solver_niceness").value) if solve_fn is None
             and self.get_parameter("solve_in_subprocess").value else None)
         self._acc = make_accumulator(self.get_parameter("repeat_policy").value)
         self._graph_file = str(self.get_parameter("graph_file").value)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import multiprocessing
+import os
 import threading
 import time
 from collections.abc import Callable, Hashable, Mapping
@@ -85,6 +86,7 @@ PARAMETER_DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "warm_start": True,
     "solve_in_subprocess": True,
+    "solver_niceness": 10,
     "graph_file": "",
     "device": "cpu",
     "threads": 0,
@@ -230,19 +232,23 @@ class SubprocessSolver:
 
     A solve is Python-heavy (an optimiser loop of small torch ops); in a thread it would
     hold the interpreter lock often enough to starve the node's subscriptions. In a child
-    process it competes only for CPU. The child keeps torch loaded between solves. If the
-    child dies, that solve raises and the next one starts a new child.
+    process it competes only for CPU, and ``niceness`` (added to the child's nice value,
+    POSIX only) makes it yield that CPU to the node and to whatever runs beside it (a SLAM
+    front end): a solve then uses the cores nobody else wants. The child keeps torch loaded
+    between solves. If the child dies, that solve raises and the next one starts a new child.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, niceness: int = 0) -> None:
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
+        self._niceness = niceness
 
     def _get_pool(self) -> ProcessPoolExecutor:
         with self._lock:
             if self._pool is None:
                 self._pool = ProcessPoolExecutor(
-                    max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+                    max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_lower_priority, initargs=(self._niceness,))
             return self._pool
 
     def __call__(
@@ -273,6 +279,12 @@ class SubprocessSolver:
 
 def _import_solver() -> None:
     import rotavg_ros.solver  # noqa: F401
+
+
+def _lower_priority(niceness: int) -> None:
+    """Child-process initializer: raise this process's nice value by ``niceness``."""
+    if niceness > 0 and hasattr(os, "nice"):
+        os.nice(niceness)
 
 
 def _runner_fn(runner: Runner, previous: SolveResult | None) -> SolveFn:

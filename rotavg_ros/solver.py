@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from rotavg_ros.chordal_init import chordal_rotations
 from rotavg_ros.dmf import DMFFit, DMFSettings, fit_symmetric, fit_symmetric_lbfgs, fit_vanilla
 from rotavg_ros.edge_filter import filter_edges
-from rotavg_ros.so3 import geodesic_distance, project_to_so3
+from rotavg_ros.so3 import chordal_distance, geodesic_distance, project_to_so3
 from rotavg_ros.solver_types import SolveResult, SolverOptions
 from rotavg_ros.view_graph import ViewGraph
 
@@ -158,7 +158,7 @@ class RotationAverager:
             if known.mean() >= opt.warm_min_known:
                 if tree_rot is None:
                     tree_rot = chordal_rotations(n, fi, fj, fR, fw)
-                H0 = warm_start_rotations(initial, known, tree_rot)
+                H0 = warm_start_rotations(initial, known, tree_rot, fi, fj, fR, opt.sigma)
                 self._say(f"warm start: {int(known.sum())}/{n} nodes known")
         fits = self._fit_depths(n, fi, fj, fR, fw, sparse, H0, initial_depth)
         costs: dict[int, float] = {}
@@ -269,16 +269,38 @@ def _thread_plan(candidates: int, threads: int | None, device: str) -> tuple[int
 
 
 def warm_start_rotations(
-    initial: FloatArray, known: NDArray[np.bool_], tree: FloatArray
+    initial: FloatArray, known: NDArray[np.bool_], tree: FloatArray,
+    i: IntArray, j: IntArray, R: FloatArray, sigma: float,
 ) -> FloatArray:
-    """Known nodes keep ``initial``; the others get ``tree`` moved into its gauge.
+    """Known nodes keep ``initial`` unless their edges side with the tree; the others get
+    ``tree`` moved into the initial's gauge.
 
     Both are world-to-node, so the gauge acts on the right: ``initial_i ~= tree_i Q`` with
-    ``Q = proj(sum_known tree_i^T initial_i)``.
+    ``Q = proj(sum_known tree_i^T initial_i)``. A previous solution can hold a node that was
+    wrong when it had few edges (a short warm fit cannot turn it round); so a known node
+    takes ``tree_i Q`` instead when more of its edges ``(i, j, R_ij)`` agree with it
+    (``d_chord(R_ij, R_i R_j^T) <= sigma``, the other end at its start value) than with
+    ``initial_i``; the gauge Q is then fitted again without the replaced nodes.
     """
     Q = project_to_so3(np.einsum("kba,kbc->ac", tree[known], initial[known]))
-    out = tree @ Q
+    alt = tree @ Q
+    out = alt.copy()
     out[known] = initial[known]
+    if i.size == 0:
+        return out
+    n = out.shape[0]
+
+    def agreeing(Ri: FloatArray, Rj: FloatArray) -> NDArray[np.float64]:
+        return (chordal_distance(R, np.einsum("eab,ecb->eac", Ri, Rj)) <= sigma).astype(float)
+
+    current = agreeing(out[i], out[j])
+    support_now = np.bincount(i, current, n) + np.bincount(j, current, n)
+    support_alt = (np.bincount(i, agreeing(alt[i], out[j]), n)
+                   + np.bincount(j, agreeing(out[i], alt[j]), n))
+    keep = known & ~(support_alt > support_now)
+    if keep.any() and not keep.all():  # the gauge again, without the replaced nodes
+        Q = project_to_so3(np.einsum("kba,kbc->ac", tree[keep], initial[keep]))
+        out[~keep] = (tree @ Q)[~keep]
     return out
 
 

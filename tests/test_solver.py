@@ -11,7 +11,7 @@ import pytest
 
 from rotavg_ros.metrics import evaluate
 from rotavg_ros.so3 import geodesic_distance, random_rotations, rotation_about_axis
-from rotavg_ros.solver import RotationAverager, average_rotations
+from rotavg_ros.solver import RotationAverager, average_rotations, warm_start_rotations
 from rotavg_ros.solver_types import SolveResult, SolverOptions
 from rotavg_ros.view_graph import ViewGraph
 
@@ -332,3 +332,38 @@ def test_outliers_dense_graph() -> None:
     # The filter removed mostly outliers.
     removed = ~res.edge_inlier
     assert removed.sum() > 0 and outl[removed].mean() > 0.8
+
+
+# ------------------------------------------------------------------ warm start
+def test_warm_start_replaces_known_nodes_that_their_edges_contradict() -> None:
+    n = 30
+    rng = np.random.default_rng(11)
+    R = random_rotations(n, rng)
+    pairs = _pairs_dense(n, 0.5, rng)
+    i = np.array([a for a, _ in pairs])
+    j = np.array([b for _, b in pairs])
+    Rij = R[i] @ R[j].transpose(0, 2, 1)
+    Q0 = random_rotations(1, rng)[0]  # the previous solution's gauge
+    initial = R @ Q0
+    wrong = np.array([3, 17, 25])
+    turn = rotation_about_axis(rng.normal(size=(3, 3)), np.full(3, np.radians(170.0)))
+    initial[wrong] = turn @ R[wrong] @ Q0
+    known = np.ones(n, bool)
+    out = warm_start_rotations(initial, known, R, i, j, Rij, sigma=0.2)
+    assert np.degrees(geodesic_distance(out, R @ Q0)).max() < 1e-4  # arccos resolution
+    # Without the wrong nodes nothing moves.
+    clean = warm_start_rotations(R @ Q0, known, R @ random_rotations(1, rng)[0], i, j, Rij, 0.2)
+    assert np.array_equal(clean, R @ Q0)
+
+
+def test_warm_solve_recovers_nodes_wrong_in_the_previous_solution() -> None:
+    n = 40
+    rng = np.random.default_rng(12)
+    R = random_rotations(n, rng)
+    meas, _ = _measurements(R, _pairs_dense(n, 0.4, rng), rng, noise_deg=1.0)
+    g = _graph(meas)
+    previous = {k: R[k] for k in range(n)}
+    for k in (5, 6, 30):
+        previous[k] = rotation_about_axis(rng.normal(size=3), np.pi * 0.95) @ R[k]
+    res = RotationAverager(FAST).solve(g, initial=previous, initial_depth=2)
+    assert _errors(res, {k: R[k] for k in range(n)}).max_deg < 3.0

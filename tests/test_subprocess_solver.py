@@ -1,0 +1,39 @@
+"""The node's solver child process: priority and a real solve through it."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from rotavg_ros.pipeline import SubprocessSolver
+from rotavg_ros.so3 import random_rotations
+from rotavg_ros.solver_types import SolverOptions
+from rotavg_ros.view_graph import ViewGraph
+
+
+@pytest.mark.skipif(not hasattr(os, "nice"), reason="os.nice is POSIX only")
+def test_child_runs_at_the_requested_lower_priority() -> None:
+    solver = SubprocessSolver(niceness=5)
+    try:
+        child = solver._get_pool().submit(os.nice, 0).result(timeout=120)
+    finally:
+        solver.close()
+    assert child == min(19, os.nice(0) + 5)
+
+
+def test_solve_through_the_child_matches_the_ground_truth() -> None:
+    rng = np.random.default_rng(0)
+    R = random_rotations(6, rng)
+    g = ViewGraph()
+    for a in range(6):
+        for b in range(a + 1, 6):
+            g.add_edge(a, b, R[a] @ R[b].T)
+    solver = SubprocessSolver(niceness=3)
+    try:
+        res = solver(g, 0, SolverOptions(mode="sparse"))
+    finally:
+        solver.close()
+    expected = R @ R[0].T  # anchor 0 at identity
+    assert np.allclose(res.rotations, expected, atol=1e-6)
