@@ -627,8 +627,19 @@ class RotavgNode(Node):
         self._pub_diag.publish(diagnostic_array([status], stamp))
 
 
+FASTDDS_PROFILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fastdds_profile.xml")
+"""Fast DDS profile with a 100 ms writer heartbeat (see the file for why)."""
+
+
 def main(args: Sequence[str] | None = None) -> None:
-    """Console script ``rotavg_node``: spin the node on a SingleThreadedExecutor."""
+    """Console script ``rotavg_node``: spin the node on a SingleThreadedExecutor.
+
+    Unless ``FASTRTPS_DEFAULT_PROFILES_FILE`` is set, it points Fast DDS at
+    :data:`FASTDDS_PROFILE` first (read when the DDS participant is created; other RMWs
+    ignore it). Processes that embed :class:`RotavgNode` can set the variable themselves.
+    """
+    if os.path.exists(FASTDDS_PROFILE):
+        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", FASTDDS_PROFILE)
     rclpy.init(args=list(args) if args is not None else None)
     node: RotavgNode | None = None
     try:

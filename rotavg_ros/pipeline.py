@@ -25,6 +25,7 @@ import dataclasses
 import math
 import multiprocessing
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable, Hashable, Mapping
@@ -248,7 +249,7 @@ class SubprocessSolver:
             if self._pool is None:
                 self._pool = ProcessPoolExecutor(
                     max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_lower_priority, initargs=(self._niceness,))
+                    initializer=_init_child, initargs=(self._niceness,))
             return self._pool
 
     def __call__(
@@ -281,8 +282,13 @@ def _import_solver() -> None:
     import rotavg_ros.solver  # noqa: F401
 
 
-def _lower_priority(niceness: int) -> None:
-    """Child-process initializer: raise this process's nice value by ``niceness``."""
+def _init_child(niceness: int) -> None:
+    """Child-process initializer: raise the nice value by ``niceness``; ignore SIGINT.
+
+    A Ctrl-C in a terminal reaches the whole process group; the parent handles it and
+    shuts this child down, so the child need not die mid-queue with a traceback.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if niceness > 0 and hasattr(os, "nice"):
         os.nice(niceness)
 

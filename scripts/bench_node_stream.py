@@ -409,15 +409,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"code: {code_version()}")
     print(f"env: ROS_DOMAIN_ID={domain_id} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST")
 
-    proc, log_path = launch_node(node_cmd)
-    timer = start_watchdog(proc, args.hard_timeout)
-
+    # Imported before the node starts: a failing import must not leave an orphan node.
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import TransformStamped
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    proc, log_path = launch_node(node_cmd)
+    timer = start_watchdog(proc, args.hard_timeout)
 
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain_id)
