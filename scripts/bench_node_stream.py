@@ -306,6 +306,25 @@ def start_watchdog(proc: subprocess.Popen[bytes], seconds: float) -> threading.T
     return timer
 
 
+def start_node_and_client(
+    node_cmd: list[str], hard_timeout: float, domain_id: int, client_name: str
+) -> tuple[subprocess.Popen[bytes], Path, threading.Timer, Any, Any]:
+    """Start the node process (with its watchdog) and this script's rclpy node.
+
+    Returns ``(proc, log_path, watchdog, context, client_node)``; the client has its own
+    ``Context`` on ``domain_id``. rclpy is imported before the node starts, so a failing
+    import cannot leave an orphan node behind.
+    """
+    import rclpy
+    from rclpy.context import Context
+
+    proc, log_path = launch_node(node_cmd)
+    timer = start_watchdog(proc, hard_timeout)
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    return proc, log_path, timer, ctx, rclpy.create_node(client_name, context=ctx)
+
+
 def wait_node_idle(proc: subprocess.Popen[bytes], log_path: Path, until: float) -> ProcSample:
     """Wait until the node uses < 10% of a core (its start-up imports are done) or ``until``.
 
@@ -409,20 +428,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"code: {code_version()}")
     print(f"env: ROS_DOMAIN_ID={domain_id} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST")
 
-    # Imported before the node starts: a failing import must not leave an orphan node.
-    import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import TransformStamped
-    from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    proc, log_path = launch_node(node_cmd)
-    timer = start_watchdog(proc, args.hard_timeout)
-
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain_id)
-    node = rclpy.create_node("bench_node_stream", context=ctx)
+    proc, log_path, timer, ctx, node = start_node_and_client(
+        node_cmd, args.hard_timeout, domain_id, "bench_node_stream")
     obs = Observer()
 
     def qos(depth: int) -> QoSProfile:

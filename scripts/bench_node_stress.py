@@ -65,10 +65,9 @@ from bench_node_stream import (  # noqa: E402
     begin_run,
     code_version,
     fmt_pf,
-    launch_node,
     make_graph,
     proc_sample,
-    start_watchdog,
+    start_node_and_client,
     stop_process,
     tail,
     wait_node_idle,
@@ -149,20 +148,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"code: {code_version()}")
     print(f"env: ROS_DOMAIN_ID={domain_id} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST")
 
-    # Imported before the node starts: a failing import must not leave an orphan node.
-    import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import TransformStamped
-    from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    proc, log_path = launch_node(node_cmd)
-    timer = start_watchdog(proc, args.hard_timeout)
-
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain_id)
-    node = rclpy.create_node("bench_node_stress", context=ctx)
+    proc, log_path, timer, ctx, node = start_node_and_client(
+        node_cmd, args.hard_timeout, domain_id, "bench_node_stress")
     obs = Observer()
     pub_qos = QoSProfile(
         history=(HistoryPolicy.KEEP_ALL if args.pub_history == "keep_all"
