@@ -30,6 +30,26 @@ class Adam:
         self.exp_avg_sq = [torch.zeros_like(p) for p in params]
         self.steps = [torch.zeros((), dtype=torch.float32, device=p.device) for p in params]
         self._fused = hasattr(torch, "_fused_adam_")
+        self.lr_tensor: torch.Tensor | None = None
+        """When set (see :meth:`use_lr_tensor`), the fused step reads the rate from this
+        device tensor instead of ``lr``: a step recorded in a CUDA graph then follows
+        :meth:`set_lr` on replay."""
+
+    @property
+    def fused(self) -> bool:
+        """Whether the fused kernel is used (the fallback syncs with the host per step)."""
+        return self._fused
+
+    def use_lr_tensor(self) -> None:
+        """Read the rate from a one-element tensor on the parameters' device from now on."""
+        self.lr_tensor = torch.tensor(self.lr, dtype=torch.float32,
+                                      device=self.params[0].device)
+
+    def set_lr(self, lr: float) -> None:
+        """Set the rate (and the rate tensor, without a host sync, when one is used)."""
+        self.lr = lr
+        if self.lr_tensor is not None:
+            self.lr_tensor.fill_(lr)
 
     @torch.no_grad()
     def step(self) -> None:
@@ -40,9 +60,10 @@ class Adam:
         if self._fused:
             for s in self.steps:
                 s.add_(1.0)
+            lr = self.lr if self.lr_tensor is None else self.lr_tensor
             torch._fused_adam_(
                 self.params, grads, self.exp_avg, self.exp_avg_sq, [], self.steps,
-                lr=self.lr, beta1=self.beta1, beta2=self.beta2, weight_decay=0.0,
+                lr=lr, beta1=self.beta1, beta2=self.beta2, weight_decay=0.0,
                 eps=self.eps, amsgrad=False, maximize=False, grad_scale=None, found_inf=None,
             )
             return

@@ -202,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--peers", action="store_true", help="also run the installed peers")
     p.add_argument("--ablations", action="store_true", help="Table II ablations on Ellis")
     p.add_argument("--timeout", type=float, default=900.0, help="per run, seconds")
+    p.add_argument("--device", default="cpu",
+                   help="solver device for our runs: cpu, cuda or auto (peers run on the CPU)")
     p.add_argument("--markdown", help="also write the table to this file")
     p.add_argument("--plots", help="folder for PNG plots (error CDFs, time vs size; "
                    "needs matplotlib from requirements-bench.txt)")
@@ -220,9 +222,11 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         bench = load(shared, name)
         n, m = bench.graph.num_nodes, bench.graph.edge_arrays().num_edges
-        runs: list[tuple[str, Any, tuple[Any, ...]]] = [(OURS, _run_ours, (shared, name, {}))]
+        dev = {"device": args.device}
+        runs: list[tuple[str, Any, tuple[Any, ...]]] = [(OURS, _run_ours, (shared, name, dev))]
         if name == "ellis" and args.ablations:
-            runs += [(f"ours {k}", _run_ours, (shared, name, v)) for k, v in ABLATIONS.items()]
+            runs += [(f"ours {k}", _run_ours, (shared, name, {**v, **dev}))
+                     for k, v in ABLATIONS.items()]
         runs += [(peer, _run_peer, (shared, name, peer)) for peer, ok in available.items() if ok]
         for method, target, targs in runs:
             status, mean, med, wall, rss, note, errors = run_child(target, targs, args.timeout)

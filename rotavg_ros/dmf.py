@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +34,7 @@ from numpy.typing import NDArray
 from rotavg_ros.adam import Adam
 from rotavg_ros.factor_chain import FactorChain
 from rotavg_ros.lbfgs import minimize_lbfgs
+from rotavg_ros.step_graph import StepGraph
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -63,6 +65,8 @@ class DMFSettings:
     cooldown: int = 50
     seed: int = 0
     device: str = "cpu"
+    cuda_graph: bool = True
+    """CUDA only: replay each Adam step of the dense fit as one recorded CUDA graph."""
     dtype: str = "float64"
     """Torch dtype of the Adam fit: ``float32`` halves memory traffic (the full-width
     factors are memory-bound); residuals of ~1e-3 rad are far above its precision."""
@@ -232,6 +236,19 @@ def fit_symmetric(
     fit ends. ``monitor(step, H)`` (N, 3, 3) is called every ``s.check_every`` iterations.
     """
     dev = s.device
+    on_gpu = torch.device(dev).type == "cuda"
+    # CUDA: a stream of this fit's own, so fits in parallel threads overlap on the device.
+    with torch.cuda.stream(torch.cuda.Stream(device=dev)) if on_gpu else nullcontext():
+        return _fit_symmetric(num_nodes, i, j, R, w, s, progress, H0, monitor,
+                              use_graph=on_gpu and s.cuda_graph)
+
+
+def _fit_symmetric(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, s: DMFSettings,
+    progress: Callable[[int, float], None] | None, H0: FloatArray | None,
+    monitor: Callable[[int, FloatArray], None] | None, use_graph: bool,
+) -> DMFFit:
+    dev = s.device
     dt = getattr(torch, s.dtype)
     gen = torch.Generator().manual_seed(s.seed)
     shapes = factor_shapes(num_nodes, s.depth, s.hidden_width)
@@ -245,39 +262,52 @@ def fit_symmetric(
     weights = torch.as_tensor(w, device=dev).to(dt, copy=True)
     eye = torch.eye(3, dtype=dt, device=dev)[:, :, None]
     opt = Adam(factors, lr=s.lr)
-    loss_val = float("nan")
-    calm, previous = 0, None
-    end, anneal_from = s.iterations, -1
-    step = 0
-    while step < end:
-        opt.lr = _lr_at(step, s) if anneal_from < 0 else _anneal_lr(step, anneal_from, end, s)
+    use_graph = use_graph and opt.fused
+    if use_graph:
+        opt.use_lr_tensor()
+    out: dict[str, torch.Tensor] = {}
+
+    def step() -> None:
+        """One Adam step; leaves the pre-update blocks and residuals in ``out``."""
         Hn = nodes_from_h_t(chain.forward())
         Hi, Hj, P = blocks.products(Hn)
         D = P.sub_(tR)
         Dd = soa_matmul(Hn, Hn, transpose_b=True).sub_(eye)
-        if progress is not None and (step + 1) % 250 == 0:
-            loss_val = _l1_loss(D, Dd, weights, s.diagonal_weight)
-            progress(step + 1, loss_val)
         G = torch.sign(D).mul_(weights)
         grad = blocks.node_gradient(G, Hi, Hj)
         grad.add_(soa_matmul(torch.sign(Dd), Hn), alpha=2.0 * s.diagonal_weight)
         chain.backward(h_t_from_nodes(grad))
         opt.step()
-        if (s.reweighting and step + 1 > s.warmup
-                and (step + 1 - s.warmup) % s.reweight_every == 0):
+        out["Hn"], out["D"], out["Dd"] = Hn, D, Dd
+
+    run_step = StepGraph(step, enabled=use_graph)
+    loss_val = float("nan")
+    calm, previous = 0, None
+    end, anneal_from = s.iterations, -1
+    step_no = 0
+    while step_no < end:
+        opt.set_lr(_lr_at(step_no, s) if anneal_from < 0
+                   else _anneal_lr(step_no, anneal_from, end, s))
+        run_step()
+        Hn, D, Dd = out["Hn"], out["D"], out["Dd"]
+        if progress is not None and (step_no + 1) % 250 == 0:
+            loss_val = _l1_loss(D, Dd, weights, s.diagonal_weight)
+            progress(step_no + 1, loss_val)
+        if (s.reweighting and step_no + 1 > s.warmup
+                and (step_no + 1 - s.warmup) % s.reweight_every == 0):
             r = D.pow(2).sum(dim=(0, 1)).sqrt()
             tau = torch.median(r)
             weights *= torch.where(r > tau, tau / r.clamp_min(1e-12), torch.ones_like(r))
-        step += 1
-        if monitor is not None and step % s.check_every == 0:
-            monitor(step, _stacked(Hn))
-        if s.tolerance > 0 and anneal_from < 0 and step % s.check_every == 0:
-            if previous is not None and step > s.warmup:
+        step_no += 1
+        if monitor is not None and step_no % s.check_every == 0:
+            monitor(step_no, _stacked(Hn))
+        if s.tolerance > 0 and anneal_from < 0 and step_no % s.check_every == 0:
+            if previous is not None and step_no > s.warmup:
                 change = float((Hn - previous).norm() / Hn.norm().clamp_min(1e-30))
                 calm = calm + 1 if change < s.tolerance else 0
                 if calm >= s.patience:  # converged at this step size: anneal, then stop
-                    anneal_from, end = step, min(end, step + s.cooldown)
-            previous = Hn
+                    anneal_from, end = step_no, min(end, step_no + s.cooldown)
+            previous = Hn.clone()  # a replayed graph overwrites Hn in place
     with torch.no_grad():
         Hn = nodes_from_h_t(chain.forward())
         Hi, Hj, P = blocks.products(Hn)

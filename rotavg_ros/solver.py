@@ -206,7 +206,7 @@ class RotationAverager:
                 H0 = chordal_rotations(n, i, j, R, w)
             pred = np.einsum("eab,ecb->eac", H0[i], H0[j])
             delta = opt.huber_factor * float(np.median(np.abs(pred - R)))
-        workers, intra = _thread_plan(len(depths), opt.threads, device)
+        workers, intra = _thread_plan(len(depths), opt.threads, device, opt.cuda_graphs)
 
         def run(depth: int) -> DMFFit:
             s = DMFSettings(
@@ -214,7 +214,7 @@ class RotationAverager:
                 reweighting=opt.reweighting, reweight_every=opt.reweight_every,
                 warmup=opt.warmup, init_scale=opt.init_scale, seed=opt.seed + depth,
                 device=device, huber_delta=delta, tolerance=opt.tolerance,
-                dtype=opt.dtype,
+                dtype=opt.dtype, cuda_graph=opt.cuda_graphs,
             )
 
             def report(step: int, loss: float) -> None:
@@ -250,8 +250,13 @@ class RotationAverager:
             self.options.progress(text)
 
 
-def _thread_plan(candidates: int, threads: int | None, device: str) -> tuple[int, int]:
+def _thread_plan(
+    candidates: int, threads: int | None, device: str, cuda_graphs: bool = True,
+) -> tuple[int, int]:
     """``(parallel candidate fits, torch threads per fit)``.
+
+    CUDA: with CUDA graphs every candidate gets a thread (and a stream of its own), since a
+    replayed step leaves the host idle; without them one fit at a time.
 
     ``threads=None``: one thread per fit, as many fits at once as there are CPUs. The fits
     are sequences of small tensor operations; torch's OpenMP threads spin-wait between them
@@ -260,7 +265,7 @@ def _thread_plan(candidates: int, threads: int | None, device: str) -> tuple[int
     An explicit ``threads`` is split among the parallel fits.
     """
     if device != "cpu":
-        return 1, torch.get_num_threads()
+        return (candidates if cuda_graphs else 1), torch.get_num_threads()
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     if threads is None:
         return max(1, min(candidates, cpus or 1)), 1

@@ -86,6 +86,11 @@ class SolverOptions:
     scalable_width: int = 64
     seed: int = 0
     device: str = "cpu"
+    """Torch device: ``cpu``, ``cuda`` (or ``cuda:N``), or ``auto`` (CUDA when available)."""
+    cuda_graphs: bool = True
+    """CUDA, dense mode: record each fit's Adam step once as a CUDA graph and replay it
+    (its ~40 small kernels otherwise cost more to launch than to run), and fit the depth
+    candidates in parallel threads, each on its own stream."""
     threads: int | None = None
     """Torch CPU threads for the solve, split among the depth candidates fitted in
     parallel. None: one thread per candidate, as many candidates at once as there are

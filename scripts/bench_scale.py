@@ -5,7 +5,7 @@ outliers) of each size in ``--sizes`` are solved with the default options, each 
 process so its peak RSS is its own. Prints one line per size: nodes, edges, solver mode,
 wall time, time per DMF iteration, peak RSS, mean / median error against the ground truth.
 
-    python scripts/bench_scale.py [--sizes 500,1000,2000,5000,10000] [--degree 20]
+    python scripts/bench_scale.py [--sizes 500,1000,2000,5000,10000] [--degree 20] [--device cpu]
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 
-def _child(n: int, degree: float, seed: int, q: Any) -> None:
+def _child(n: int, degree: float, seed: int, device: str, q: Any) -> None:
     from bench_warm_start import measure, synthetic_edges
 
     from rotavg_ros.metrics import evaluate
@@ -31,7 +31,8 @@ def _child(n: int, degree: float, seed: int, q: Any) -> None:
     R = random_rotations(n, rng)
     g = measure(R, synthetic_edges(n, degree, rng), np.random.default_rng(seed + 1), 2.0, 0.1)
     marks: list[tuple[float, str]] = []
-    opts = SolverOptions(seed=seed, progress=lambda s: marks.append((time.perf_counter(), s)))
+    opts = SolverOptions(seed=seed, device=device,
+                         progress=lambda s: marks.append((time.perf_counter(), s)))
     averager = RotationAverager(opts)
     t0 = time.perf_counter()
     res = averager.solve(g)
@@ -42,7 +43,13 @@ def _child(n: int, degree: float, seed: int, q: Any) -> None:
     per_iter = (t0 + wall - fit_start) / iters * 1e3 if iters else float("nan")
     st = evaluate(dict(zip(res.node_ids, res.rotations, strict=True)), dict(enumerate(R)))
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    q.put((n, g.edge_arrays().num_edges, mode, wall, per_iter, rss, st.mean_deg, st.median_deg))
+    gpu = 0.0
+    if device.startswith("cuda"):
+        import torch
+
+        gpu = torch.cuda.max_memory_allocated() / 2**20
+    q.put((n, g.edge_arrays().num_edges, mode, wall, per_iter, rss, st.mean_deg, st.median_deg,
+           gpu))
 
 
 def main() -> None:
@@ -51,6 +58,7 @@ def main() -> None:
     p.add_argument("--sizes", default="500,1000,2000,5000,10000")
     p.add_argument("--degree", type=float, default=20.0)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="solver device: cpu, cuda or auto")
     args = p.parse_args()
     print("| nodes | edges | mode | wall s | ms / iteration (all depths) | peak RSS MB "
           "| mean ° | median ° |")
@@ -58,12 +66,13 @@ def main() -> None:
     ctx = mp.get_context("spawn")
     for n in (int(x) for x in args.sizes.split(",")):
         q = ctx.Queue()
-        proc = ctx.Process(target=_child, args=(n, args.degree, args.seed, q))
+        proc = ctx.Process(target=_child, args=(n, args.degree, args.seed, args.device, q))
         proc.start()
-        n_, e, mode, wall, per_iter, rss, mean, med = q.get()
+        n_, e, mode, wall, per_iter, rss, mean, med, gpu = q.get()
         proc.join()
         print(f"| {n_} | {e} | {mode} | {wall:.1f} | {per_iter:.2f} | {rss:.0f} | "
-              f"{mean:.3f} | {med:.3f} |", flush=True)
+              f"{mean:.3f} | {med:.3f} |" + (f" GPU peak {gpu:.0f} MB" if gpu else ""),
+              flush=True)
 
 
 if __name__ == "__main__":

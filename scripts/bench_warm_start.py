@@ -6,7 +6,7 @@ once cold and once warm-started from the first solution (``RotationAverager.solv
 initial=..., initial_depth=...)``, as the node does). Prints wall times, their ratio and the
 gauge-aligned errors against the ground truth.
 
-    python scripts/bench_warm_start.py [--nodes 2000] [--degree 20] [--grow 0.01]
+    python scripts/bench_warm_start.py [--nodes 2000] [--degree 20] [--grow 0.01] [--device cpu]
 """
 
 from __future__ import annotations
@@ -65,13 +65,14 @@ def main() -> None:
     p.add_argument("--degree", type=float, default=20.0)
     p.add_argument("--grow", type=float, default=0.01)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="solver device: cpu, cuda or auto")
     args = p.parse_args()
     rng = np.random.default_rng(args.seed)
     R = random_rotations(args.nodes, rng)
     pairs = synthetic_edges(args.nodes, args.degree, rng)
     cut = int(len(pairs) / (1.0 + args.grow))
     gt = dict(enumerate(R))
-    averager = RotationAverager(SolverOptions(seed=args.seed))
+    averager = RotationAverager(SolverOptions(seed=args.seed, device=args.device))
     g0 = measure(R, pairs[:cut], np.random.default_rng(1), 2.0, 0.1)
     g1 = measure(R, pairs, np.random.default_rng(1), 2.0, 0.1)  # same first `cut` edges
     r0, t0 = timed(averager, g0)

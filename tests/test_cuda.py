@@ -1,0 +1,127 @@
+"""The CUDA path: the same pipeline with ``device="cuda"``.
+
+Skipped where torch sees no CUDA device (CI and the 2-core development machine have none);
+run on a GPU machine with ``python -m pytest tests/test_cuda.py``. Every check compares the
+GPU result with ground truth or with the CPU result of the same seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from itertools import combinations
+
+import numpy as np
+import pytest
+import torch
+
+from rotavg_ros.metrics import evaluate
+from rotavg_ros.so3 import random_rotations, rotation_about_axis
+from rotavg_ros.solver import RotationAverager, average_rotations
+from rotavg_ros.solver_types import SolverOptions
+from rotavg_ros.step_graph import StepGraph
+from rotavg_ros.view_graph import ViewGraph
+
+pytestmark = pytest.mark.skipif(
+    not torch.cuda.is_available(),
+    reason="no CUDA device: the CUDA path is checked on a GPU machine (see README)")
+
+GPU = SolverOptions(device="cuda", depths=(2, 4), iterations=1000)
+
+
+def _graph(n: int, p: float, noise_deg: float, outliers: float, seed: int,
+           chain: bool = False) -> tuple[ViewGraph, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    R = random_rotations(n, rng)
+    if chain:
+        pairs = [(k, k + 1) for k in range(n - 1)] + [(k, k + 7) for k in range(0, n - 7, 3)]
+    else:
+        pairs = [(a, b) for a, b in combinations(range(n), 2) if rng.random() < p]
+    g = ViewGraph()
+    for a, b in pairs:
+        Rij = R[a] @ R[b].T
+        if outliers and rng.random() < outliers:
+            Rij = random_rotations(1, rng)[0]
+        elif noise_deg:
+            Rij = rotation_about_axis(rng.normal(size=3),
+                                      np.radians(noise_deg) * rng.normal()) @ Rij
+        g.add_edge(a, b, Rij)
+    return g, R
+
+
+def _stats(res, R):  # type: ignore[no-untyped-def]
+    return evaluate({k: res.rotations[x] for x, k in enumerate(res.node_ids)}, dict(enumerate(R)))
+
+
+def test_dense_exact_recovery_on_gpu() -> None:
+    g, R = _graph(40, 0.4, 0.0, 0.0, seed=1)
+    res = RotationAverager(replace(GPU, dtype="float64")).solve(g)
+    assert _stats(res, R).max_deg < 0.01
+
+
+def test_dense_gpu_matches_cpu_with_noise_and_outliers() -> None:
+    g, R = _graph(60, 0.3, 2.0, 0.15, seed=2)
+    gpu = _stats(RotationAverager(GPU).solve(g), R)
+    cpu = _stats(RotationAverager(replace(GPU, device="cpu")).solve(g), R)
+    assert gpu.mean_deg < 1.5
+    assert abs(gpu.mean_deg - cpu.mean_deg) < 0.05
+    assert abs(gpu.median_deg - cpu.median_deg) < 0.05
+
+
+def test_sparse_mode_on_gpu() -> None:
+    g, R = _graph(200, 0.0, 1.0, 0.0, seed=3, chain=True)
+    opt = replace(GPU, mode="sparse")
+    gpu = _stats(RotationAverager(opt).solve(g), R)
+    cpu = _stats(RotationAverager(replace(opt, device="cpu")).solve(g), R)
+    assert gpu.median_deg < 2.0
+    assert abs(gpu.median_deg - cpu.median_deg) < 0.01
+
+
+def test_warm_resolve_on_gpu() -> None:
+    g, R = _graph(60, 0.3, 1.0, 0.1, seed=4)
+    averager = RotationAverager(GPU)
+    first = averager.solve(g)
+    previous = {k: first.rotations[x] for x, k in enumerate(first.node_ids)}
+    warm = averager.solve(g, initial=previous, initial_depth=first.depth)
+    assert _stats(warm, R).mean_deg <= _stats(first, R).mean_deg + 0.05
+
+
+def test_vanilla_ablation_on_gpu() -> None:
+    g, R = _graph(30, 0.5, 0.0, 0.0, seed=5)
+    opt = replace(GPU, depths=(2,), explicit_constraint=False, use_filter=False)
+    assert _stats(RotationAverager(opt).solve(g), R).median_deg < 0.5
+
+
+def test_auto_device_picks_cuda() -> None:
+    g, _ = _graph(20, 0.5, 0.0, 0.0, seed=6)
+    e = g.edge_arrays()
+    out = average_rotations(g.num_nodes, e.i, e.j, e.R, e.weight,
+                            replace(GPU, device="auto", depths=(2,), iterations=200))
+    assert np.all(np.isfinite(out[0]))
+
+
+def test_step_graph_records_once_and_replays_with_new_inputs() -> None:
+    x = torch.zeros(4, device="cuda")
+    rate = torch.zeros((), device="cuda")
+    calls = []
+
+    def step() -> None:
+        calls.append(1)
+        x.add_(rate)
+
+    graphed = StepGraph(step, enabled=True, eager_calls=2)
+    for k in range(6):
+        rate.fill_(float(k + 1))
+        graphed()
+    torch.cuda.synchronize()
+    assert graphed.graph is not None
+    assert len(calls) == 3  # two eager calls and the recording; the rest were replays
+    assert torch.equal(x, torch.full((4,), 21.0, device="cuda"))  # 1 + 2 + ... + 6
+
+
+def test_cuda_graphs_and_parallel_candidates_match_eager_launches() -> None:
+    g, R = _graph(60, 0.3, 2.0, 0.15, seed=7)
+    graphed = RotationAverager(GPU).solve(g)
+    eager = RotationAverager(replace(GPU, cuda_graphs=False)).solve(g)
+    a, b = _stats(graphed, R), _stats(eager, R)
+    assert abs(a.mean_deg - b.mean_deg) < 0.02
+    assert abs(a.median_deg - b.median_deg) < 0.02
