@@ -125,3 +125,19 @@ def test_cuda_graphs_and_parallel_candidates_match_eager_launches() -> None:
     a, b = _stats(graphed, R), _stats(eager, R)
     assert abs(a.mean_deg - b.mean_deg) < 0.02
     assert abs(a.median_deg - b.median_deg) < 0.02
+
+
+def test_node_solver_child_solves_on_cuda() -> None:
+    """The node's spawned solver process, cold and then warm-started, on the GPU."""
+    from rotavg_ros.pipeline import SubprocessSolver
+
+    g, R = _graph(50, 0.3, 1.0, 0.1, seed=8)
+    solver = SubprocessSolver(niceness=0)
+    try:
+        cold = solver(g, None, GPU)
+        previous = {k: cold.rotations[x] for x, k in enumerate(cold.node_ids)}
+        warm = solver(g, None, GPU, previous, cold.depth)
+    finally:
+        solver.close()
+    assert _stats(cold, R).mean_deg < 1.5
+    assert _stats(warm, R).mean_deg <= _stats(cold, R).mean_deg + 0.05
