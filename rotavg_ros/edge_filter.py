@@ -128,27 +128,34 @@ def priority_order(
 def tree_rotations(
     i: IntArray, j: IntArray, R: FloatArray, tree_edges: IntArray, num_nodes: int
 ) -> FloatArray:
-    """World-to-node rotations from the spanning forest; each component root is identity."""
-    ti, tj = i[tree_edges], j[tree_edges]
-    # Store both directions: entry (p, q) -> edge index + 1 with orientation sign.
-    data = np.concatenate([tree_edges + 1, -(tree_edges + 1)]).astype(np.float64)
-    adj = coo_matrix((data, (np.concatenate([ti, tj]), np.concatenate([tj, ti]))),
-                     shape=(num_nodes, num_nodes)).tocsr()
+    """World-to-node rotations from the spanning forest; each component root is identity.
+
+    The root of a component is its lowest node index. Each other node's rotation follows
+    from its parent's through the tree edge between them, in breadth-first order (a node's
+    parent in a tree does not depend on the traversal order, so neither does the result).
+    """
     rot = np.tile(np.eye(3), (num_nodes, 1, 1))
-    visited = np.zeros(num_nodes, bool)
-    for root in range(num_nodes):
-        if visited[root]:
-            continue
-        order, pred = breadth_first_order(adj, root, directed=True, return_predecessors=True)
-        visited[order] = True
-        for node in order[1:]:
-            parent = pred[node]
-            code = adj[parent, node]
-            e = int(abs(code)) - 1
-            if code > 0:  # edge stored as (parent, node): R_pn = R_p R_n^T -> R_n = R_pn^T R_p
-                rot[node] = R[e].T @ rot[parent]
-            else:  # edge stored as (node, parent): R_np = R_n R_p^T -> R_n = R_np R_p
-                rot[node] = R[e] @ rot[parent]
+    if tree_edges.size == 0:
+        return rot
+    ti, tj = i[tree_edges], j[tree_edges]
+    adj = coo_matrix((np.ones(ti.size), (ti, tj)), shape=(num_nodes, num_nodes)).tocsr()
+    # Tree edge of a node pair: sorted keys min * N + max, found by binary search.
+    keys = np.minimum(ti, tj) * num_nodes + np.maximum(ti, tj)
+    by_key = np.argsort(keys)
+    sorted_keys = keys[by_key]
+    labels = connected_components(adj, directed=False)[1]
+    roots = np.unique(labels, return_index=True)[1]  # lowest index of each component
+    for root in roots[np.bincount(labels)[labels[roots]] > 1]:
+        order, pred = breadth_first_order(adj, int(root), directed=False,
+                                          return_predecessors=True)
+        nodes, parents = order[1:], pred[order[1:]]
+        pair = np.minimum(nodes, parents) * num_nodes + np.maximum(nodes, parents)
+        e = tree_edges[by_key[np.searchsorted(sorted_keys, pair)]]
+        # Edge (parent, node): R_pn = R_p R_n^T -> R_n = R_pn^T R_p; edge (node, parent):
+        # R_np = R_n R_p^T -> R_n = R_np R_p.
+        step = np.where((i[e] == parents)[:, None, None], R[e].transpose(0, 2, 1), R[e])
+        for node, s, parent in zip(nodes.tolist(), step, parents.tolist(), strict=True):
+            rot[node] = s @ rot[parent]
     return rot
 
 
