@@ -24,7 +24,7 @@ import numpy as np
 from rotavg_ros.datasets import find_shared_dir, load_ellis_island
 from rotavg_ros.edge_filter import filter_edges
 from rotavg_ros.metrics import evaluate
-from rotavg_ros.solver import RotationAverager, observation_cost, rotations_from_factor
+from rotavg_ros.solver import average_rotations
 from rotavg_ros.solver_types import SolverOptions
 
 SPACE = {
@@ -71,15 +71,11 @@ def main() -> int:
         if sig not in filters:
             filters[sig] = filter_edges(e.i, e.j, e.R, w, n, sig, True, base.sigma_untested).kept
         k = filters[sig]
-        fi, fj, fR, fw = e.i[k], e.j[k], e.R[k], w[k]
         means, medians = [], []
         for seed in seeds:
-            opt = replace(base, seed=seed, **c)
-            fits = RotationAverager(opt)._fit_depths(n, fi, fj, fR, fw, sparse=False)
-            rots = {d: rotations_from_factor(f.H) for d, f in fits.items()}
-            best = min(rots, key=lambda d: observation_cost(rots[d], fi, fj, fR, fw))
-            st = evaluate(dict(zip(bench.graph.node_ids, rots[best], strict=True)),
-                          bench.reference)
+            opt = replace(base, seed=seed, use_filter=False, **c)  # filtered above
+            rot = average_rotations(n, e.i[k], e.j[k], e.R[k], w[k], opt)[0]
+            st = evaluate(dict(zip(bench.graph.node_ids, rot, strict=True)), bench.reference)
             means.append(st.mean_deg)
             medians.append(st.median_deg)
         rows.append((max(means), float(np.mean(means)), max(medians), float(np.mean(medians)),
