@@ -237,10 +237,26 @@ def fit_symmetric(
     """
     dev = s.device
     on_gpu = torch.device(dev).type == "cuda"
-    # CUDA: a stream of this fit's own, so fits in parallel threads overlap on the device.
-    with torch.cuda.stream(torch.cuda.Stream(device=dev)) if on_gpu else nullcontext():
+    # CUDA: a stream per depth, so parallel candidates overlap on the device.
+    with torch.cuda.stream(_fit_stream(dev, s.depth)) if on_gpu else nullcontext():
         return _fit_symmetric(num_nodes, i, j, R, w, s, progress, H0, monitor,
                               use_graph=on_gpu and s.cuda_graph)
+
+
+_FIT_STREAMS: dict[tuple[str, int], torch.cuda.Stream] = {}
+
+
+def _fit_stream(device: str, depth: int) -> torch.cuda.Stream:
+    """The CUDA stream of the fits of one depth, made once per process and reused.
+
+    Candidates of different depths fit in parallel threads, one stream each. Reusing the
+    streams across solves matters: the caching allocator reuses a freed block only on the
+    stream it was allocated on, so a fresh stream per fit would strand cached memory.
+    """
+    key = (str(torch.device(device)), depth)
+    if key not in _FIT_STREAMS:
+        _FIT_STREAMS.setdefault(key, torch.cuda.Stream(device=device))
+    return _FIT_STREAMS[key]
 
 
 def _fit_symmetric(

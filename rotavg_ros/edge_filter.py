@@ -137,7 +137,7 @@ def tree_rotations(
     rot = np.tile(np.eye(3), (num_nodes, 1, 1))
     if tree_edges.size == 0:
         return rot
-    ti, tj = i[tree_edges], j[tree_edges]
+    ti, tj = i[tree_edges].astype(np.int64), j[tree_edges].astype(np.int64)
     adj = coo_matrix((np.ones(ti.size), (ti, tj)), shape=(num_nodes, num_nodes)).tocsr()
     # Tree edge of a node pair: sorted keys min * N + max, found by binary search.
     keys = np.minimum(ti, tj) * num_nodes + np.maximum(ti, tj)
@@ -148,7 +148,9 @@ def tree_rotations(
     for root in roots[np.bincount(labels)[labels[roots]] > 1]:
         order, pred = breadth_first_order(adj, int(root), directed=False,
                                           return_predecessors=True)
-        nodes, parents = order[1:], pred[order[1:]]
+        # int64: scipy returns int32, and the pair keys below reach num_nodes ** 2.
+        nodes = order[1:].astype(np.int64)
+        parents = pred[nodes].astype(np.int64)
         pair = np.minimum(nodes, parents) * num_nodes + np.maximum(nodes, parents)
         e = tree_edges[by_key[np.searchsorted(sorted_keys, pair)]]
         # Edge (parent, node): R_pn = R_p R_n^T -> R_n = R_pn^T R_p; edge (node, parent):

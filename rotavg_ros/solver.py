@@ -206,7 +206,8 @@ class RotationAverager:
                 H0 = chordal_rotations(n, i, j, R, w)
             pred = np.einsum("eab,ecb->eac", H0[i], H0[j])
             delta = opt.huber_factor * float(np.median(np.abs(pred - R)))
-        workers, intra = _thread_plan(len(depths), opt.threads, device, opt.cuda_graphs)
+        graphed = opt.cuda_graphs and opt.explicit_constraint and not sparse
+        workers, intra = _thread_plan(len(depths), opt.threads, device, graphed)
 
         def run(depth: int) -> DMFFit:
             s = DMFSettings(
@@ -251,12 +252,13 @@ class RotationAverager:
 
 
 def _thread_plan(
-    candidates: int, threads: int | None, device: str, cuda_graphs: bool = True,
+    candidates: int, threads: int | None, device: str, graphed: bool = True,
 ) -> tuple[int, int]:
     """``(parallel candidate fits, torch threads per fit)``.
 
-    CUDA: with CUDA graphs every candidate gets a thread (and a stream of its own), since a
-    replayed step leaves the host idle; without them one fit at a time.
+    CUDA: fits whose step is a replayed CUDA graph (``graphed``: the dense fit with
+    ``cuda_graphs``) get a thread each, on a stream of their own, since a replay leaves the
+    host idle; other fits on CUDA run one at a time.
 
     ``threads=None``: one thread per fit, as many fits at once as there are CPUs. The fits
     are sequences of small tensor operations; torch's OpenMP threads spin-wait between them
@@ -265,7 +267,7 @@ def _thread_plan(
     An explicit ``threads`` is split among the parallel fits.
     """
     if device != "cpu":
-        return (candidates if cuda_graphs else 1), torch.get_num_threads()
+        return (candidates if graphed else 1), torch.get_num_threads()
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     if threads is None:
         return max(1, min(candidates, cpus or 1)), 1

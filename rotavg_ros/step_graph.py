@@ -24,8 +24,9 @@ class StepGraph:
     The eager calls come first so that lazy set-up (cuBLAS handles, workspaces, allocator
     blocks) happens outside the capture. Capture and replay use the caller's current CUDA
     stream, and ``thread_local`` capture mode, so fits in several threads (each on its own
-    stream) can record and replay their graphs side by side. Replays run on the caller's
-    current stream.
+    stream) can record and replay their graphs side by side. A caller on the default
+    stream, where capture is not allowed, gets a side stream of the graph's own for the
+    eager calls, the recording and the replays (ordered after and before its own work).
     """
 
     def __init__(self, step: Callable[[], None], enabled: bool, eager_calls: int = 2) -> None:
@@ -34,28 +35,37 @@ class StepGraph:
         self.eager_calls = eager_calls
         self.calls = 0
         self.graph: torch.cuda.CUDAGraph | None = None
+        self._stream: torch.cuda.Stream | None = None
 
     def __call__(self) -> None:
-        if self.enabled and self.graph is None and self.calls >= self.eager_calls:
-            self.graph = self._record()
-        if self.graph is not None:
-            self.graph.replay()
-        else:
+        if not self.enabled:
             self.step()
+            self.calls += 1
+            return
+        current = torch.cuda.current_stream()
+        if self._stream is None:  # capture is not allowed on the default stream
+            default = current == torch.cuda.default_stream()
+            self._stream = torch.cuda.Stream() if default else current
+        own = self._stream
+        if own != current:
+            own.wait_stream(current)
+        with torch.cuda.stream(own):
+            if self.graph is None and self.calls >= self.eager_calls:
+                self.graph = self._record()
+            if self.graph is not None:
+                self.graph.replay()
+            else:
+                self.step()
+        if own != current:
+            current.wait_stream(own)
         self.calls += 1
 
     def _record(self) -> torch.cuda.CUDAGraph:
-        """Record one call of ``step`` (nothing runs); on a side stream if the caller is on
-        the default stream, where capture is not allowed."""
+        """Record one call of ``step`` on the current stream (nothing runs)."""
         graph = torch.cuda.CUDAGraph()
-        current = torch.cuda.current_stream()
-        side = torch.cuda.Stream() if current == torch.cuda.default_stream() else current
-        side.wait_stream(current)
-        with torch.cuda.stream(side):
-            graph.capture_begin(capture_error_mode="thread_local")
-            try:
-                self.step()  # recorded, not run
-            finally:
-                graph.capture_end()
-        current.wait_stream(side)
+        graph.capture_begin(capture_error_mode="thread_local")
+        try:
+            self.step()
+        finally:
+            graph.capture_end()
         return graph

@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 import torch
 
+from rotavg_ros.dmf import DMFSettings, fit_symmetric
 from rotavg_ros.metrics import evaluate
 from rotavg_ros.so3 import random_rotations, rotation_about_axis
-from rotavg_ros.solver import RotationAverager, average_rotations
+from rotavg_ros.solver import RotationAverager, average_rotations, rotations_from_factor
 from rotavg_ros.solver_types import SolverOptions
 from rotavg_ros.step_graph import StepGraph
 from rotavg_ros.view_graph import ViewGraph
@@ -100,22 +101,53 @@ def test_auto_device_picks_cuda() -> None:
 
 
 def test_step_graph_records_once_and_replays_with_new_inputs() -> None:
+    # Called from the default stream (where capture is not allowed), with a cuBLAS product.
     x = torch.zeros(4, device="cuda")
     rate = torch.zeros((), device="cuda")
+    m = torch.randn(8, 8, device="cuda", dtype=torch.float64)
+    prod = torch.zeros(8, 8, device="cuda", dtype=torch.float64)
     calls = []
 
     def step() -> None:
         calls.append(1)
         x.add_(rate)
+        torch.mm(m, m, out=prod)
 
     graphed = StepGraph(step, enabled=True, eager_calls=2)
     for k in range(6):
         rate.fill_(float(k + 1))
+        m.add_(1.0)  # new input on the caller's stream before every call
         graphed()
+    assert torch.cuda.current_stream() == torch.cuda.default_stream()
     torch.cuda.synchronize()
     assert graphed.graph is not None
     assert len(calls) == 3  # two eager calls and the recording; the rest were replays
     assert torch.equal(x, torch.full((4,), 21.0, device="cuda"))  # 1 + 2 + ... + 6
+    torch.testing.assert_close(prod, m @ m)  # the last replay saw the last input
+
+
+def test_graphed_dense_fit_records_once_and_recovers_exactly(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # An L1 fit is exact only if the step size decays: the replayed step must follow the
+    # rate tensor, not the rate at capture time.
+    recorded = []
+    original = StepGraph._record
+
+    def counting(self: StepGraph) -> torch.cuda.CUDAGraph:
+        recorded.append(1)
+        return original(self)
+
+    monkeypatch.setattr(StepGraph, "_record", counting)
+    g, R = _graph(30, 0.5, 0.0, 0.0, seed=9)
+    e = g.edge_arrays()
+    s = DMFSettings(depth=4, hidden_width=90, iterations=1000, tolerance=0.0,
+                    device="cuda", dtype="float64", cuda_graph=True)
+    fit = fit_symmetric(g.num_nodes, e.i, e.j, e.R, e.weight, s)
+    assert recorded == [1]
+    rot = rotations_from_factor(fit.H)
+    est = {k: rot[x] for x, k in enumerate(g.node_ids)}
+    assert evaluate(est, dict(enumerate(R))).max_deg < 0.01
 
 
 def test_cuda_graphs_and_parallel_candidates_match_eager_launches() -> None:

@@ -7,7 +7,7 @@ from itertools import combinations
 import numpy as np
 import pytest
 
-from rotavg_ros.edge_filter import filter_edges, loop_statistics
+from rotavg_ros.edge_filter import filter_edges, loop_statistics, tree_rotations
 from rotavg_ros.so3 import chordal_distance, random_rotations, rotation_about_axis
 from rotavg_ros.triangles import enumerate_triangles
 
@@ -166,3 +166,17 @@ def test_tree_rotations_per_component_roots() -> None:
     np.testing.assert_allclose(res.tree_rotations[3], np.eye(3), atol=1e-15)
     np.testing.assert_allclose(res.tree_rotations[4], R[4] @ R[3].T, atol=1e-12)
     np.testing.assert_allclose(res.tree_rotations[2], R[2] @ R[0].T, atol=1e-12)
+
+
+@pytest.mark.parametrize("index_dtype", [np.int64, np.int32])
+def test_tree_rotations_on_a_70k_node_chain(index_dtype: type) -> None:
+    # Pair keys min * N + max pass 2**32 here: they must not be formed in int32 (scipy's
+    # traversal returns int32 node arrays).
+    n = 70_000
+    R = random_rotations(n, np.random.default_rng(7))
+    i = np.arange(n - 1, dtype=index_dtype)
+    j = i + 1
+    Rij = np.einsum("eab,ecb->eac", R[i], R[j])
+    rot = tree_rotations(i, j, Rij, np.arange(n - 1), n)
+    expected = np.einsum("kab,cb->kac", R, R[0])
+    np.testing.assert_allclose(rot, expected, atol=1e-8)
