@@ -30,9 +30,9 @@ from rotavg_ros import peers
 from rotavg_ros.datasets import (
     SE_SYNC_GRAPHS,
     Benchmark,
-    find_shared_dir,
     load_ellis_island,
     load_se_sync,
+    shared_dir_or_say,
 )
 from rotavg_ros.metrics import evaluate
 from rotavg_ros.solver import RotationAverager
@@ -208,10 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plots", help="folder for PNG plots (error CDFs, time vs size; "
                    "needs matplotlib from requirements-bench.txt)")
     args = p.parse_args(argv)
-    shared = find_shared_dir()
+    shared = shared_dir_or_say("benchmark")
     if shared is None:
-        print("benchmark: shared data not found (../shared or $ROTAVG_SHARED); nothing to do",
-              file=sys.stderr)
         return 0
     names = [g.strip() for g in args.graphs.split(",") if g.strip()]
     unknown = sorted(set(names) - set(GRAPHS))

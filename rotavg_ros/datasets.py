@@ -8,6 +8,7 @@ must skip with a clear message.
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Hashable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +43,15 @@ def find_shared_dir() -> Path | None:
         candidates.append(Path(os.environ["ROTAVG_SHARED"]))
     candidates += [REPO_ROOT.parent / "shared", Path.cwd().parent / "shared"]
     return next((c for c in candidates if (c / "data").is_dir()), None)
+
+
+def shared_dir_or_say(prog: str) -> Path | None:
+    """:func:`find_shared_dir`, printing why ``prog`` has nothing to do when it is absent."""
+    shared = find_shared_dir()
+    if shared is None:
+        print(f"{prog}: shared data not found (../shared or $ROTAVG_SHARED); nothing to do",
+              file=sys.stderr)
+    return shared
 
 
 def load_ellis_island(shared: Path) -> Benchmark:

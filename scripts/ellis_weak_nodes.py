@@ -17,7 +17,7 @@ import sys
 
 import numpy as np
 
-from rotavg_ros.datasets import find_shared_dir, load_ellis_island
+from rotavg_ros.datasets import load_ellis_island, shared_dir_or_say
 from rotavg_ros.edge_filter import filter_edges
 from rotavg_ros.metrics import evaluate
 from rotavg_ros.so3 import geodesic_distance
@@ -32,10 +32,8 @@ def main() -> int:
     p.add_argument("--restore-seeds", default="")
     p.add_argument("--device", default="cpu")
     args = p.parse_args()
-    shared = find_shared_dir()
+    shared = shared_dir_or_say("ellis_weak_nodes")
     if shared is None:
-        print("ellis_weak_nodes: shared data not found (../shared or $ROTAVG_SHARED)",
-              file=sys.stderr)
         return 0
     bench = load_ellis_island(shared)
     g, e, n = bench.graph, bench.graph.edge_arrays(), bench.graph.num_nodes

@@ -21,7 +21,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from rotavg_ros.datasets import find_shared_dir, load_ellis_island, load_se_sync
+from rotavg_ros.datasets import load_ellis_island, load_se_sync, shared_dir_or_say
 from rotavg_ros.dmf import DMFSettings, fit_symmetric
 from rotavg_ros.edge_filter import filter_edges
 from rotavg_ros.metrics import evaluate
@@ -44,10 +44,8 @@ def main() -> int:
     p.add_argument("--no-cuda-graphs", action="store_true",
                    help="CUDA: launch every kernel from Python, one candidate at a time")
     args = p.parse_args()
-    shared = find_shared_dir()
+    shared = shared_dir_or_say("profile_phases")
     if shared is None:
-        print("profile_phases: shared data not found (../shared or $ROTAVG_SHARED)",
-              file=sys.stderr)
         return 0
     bench = load_ellis_island(shared) if args.graph == "ellis" else load_se_sync(shared,
                                                                                  args.graph)

@@ -21,7 +21,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from rotavg_ros.datasets import find_shared_dir, load_ellis_island
+from rotavg_ros.datasets import load_ellis_island, shared_dir_or_say
 from rotavg_ros.edge_filter import filter_edges
 from rotavg_ros.metrics import evaluate
 from rotavg_ros.solver import average_rotations
@@ -46,10 +46,8 @@ def main() -> int:
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--sample-seed", type=int, default=0)
     args = p.parse_args()
-    shared = find_shared_dir()
+    shared = shared_dir_or_say("sweep_ellis")
     if shared is None:
-        print("sweep_ellis: shared data not found (../shared or $ROTAVG_SHARED)",
-              file=sys.stderr)
         return 0
     bench = load_ellis_island(shared)
     e = bench.graph.edge_arrays()
