@@ -49,7 +49,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Hashable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -325,6 +325,42 @@ def start_node_and_client(
     return proc, log_path, timer, ctx, rclpy.create_node(client_name, context=ctx)
 
 
+def start_spinner(node: Any, ctx: Any) -> tuple[Any, threading.Event, threading.Thread]:
+    """Spin ``node`` in a daemon thread until the returned event is set or ``ctx`` ends.
+
+    Returns ``(executor, stop, thread)``; the caller sets ``stop``, joins the thread and
+    shuts the executor down.
+    """
+    from rclpy.executors import SingleThreadedExecutor
+
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set() and ctx.ok():
+            ex.spin_once(timeout_sec=0.05)
+
+    thread = threading.Thread(target=spin, name="spin", daemon=True)
+    thread.start()
+    return ex, stop, thread
+
+
+def wait_for_match(
+    proc: subprocess.Popen[bytes], log_path: Path, until: float, timeout_s: float,
+    matched: Callable[[], bool],
+) -> None:
+    """Poll ``matched()`` until true; ``RuntimeError`` if the node exits or ``until`` passes
+    (``timeout_s`` is the limit named in that error)."""
+    while time.monotonic() < until:
+        if proc.poll() is not None:
+            raise RuntimeError(f"node exited (rc {proc.returncode}):\n{tail(log_path)}")
+        if matched():
+            return
+        time.sleep(0.05)
+    raise RuntimeError(f"topics did not match within {timeout_s:g} s:\n{tail(log_path)}")
+
+
 def wait_node_idle(proc: subprocess.Popen[bytes], log_path: Path, until: float) -> ProcSample:
     """Wait until the node uses < 10% of a core (its start-up imports are done) or ``until``.
 
@@ -430,7 +466,6 @@ def main(argv: list[str] | None = None) -> int:
 
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import TransformStamped
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     proc, log_path, timer, ctx, node = start_node_and_client(
@@ -460,32 +495,18 @@ def main(argv: list[str] | None = None) -> int:
                                      on_orientation, qos(max(10000, 4 * args.nodes)))
     sub_d = node.create_subscription(DiagnosticArray, "/diagnostics", obs.on_diagnostics,
                                      qos(1000))
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set() and ctx.ok():
-            ex.spin_once(timeout_sec=0.05)
-
-    spinner = threading.Thread(target=spin, name="spin", daemon=True)
-    spinner.start()
+    ex, stop, spinner = start_spinner(node, ctx)
 
     rc = 1
     samples: dict[str, ProcSample | None] = {}
     try:
         # ------------------------------------------------------------ wait for matching
         t_launch = time.monotonic()
-        while time.monotonic() < min(deadline, t_launch + args.match_timeout):
-            if proc.poll() is not None:
-                raise RuntimeError(f"node exited (rc {proc.returncode}):\n{tail(log_path)}")
-            if (pub.get_subscription_count() >= 1 and sub_o.get_publisher_count() >= 1
-                    and sub_d.get_publisher_count() >= 1):
-                break
-            time.sleep(0.05)
-        else:
-            raise RuntimeError(f"topics did not match within {args.match_timeout:g} s:\n"
-                               f"{tail(log_path)}")
+        wait_for_match(proc, log_path, min(deadline, t_launch + args.match_timeout),
+                       args.match_timeout,
+                       lambda: (pub.get_subscription_count() >= 1
+                                and sub_o.get_publisher_count() >= 1
+                                and sub_d.get_publisher_count() >= 1))
         print(f"matched {time.monotonic() - t_launch:.2f} s after the node was launched")
         # The node imports the solver (torch) on its worker thread at start-up; wait until it
         # is idle so that the stream measures the steady state, not the start-up.

@@ -50,7 +50,6 @@ import math
 import shlex
 import signal
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -68,8 +67,10 @@ from bench_node_stream import (  # noqa: E402
     make_graph,
     proc_sample,
     start_node_and_client,
+    start_spinner,
     stop_process,
     tail,
+    wait_for_match,
     wait_node_idle,
 )
 
@@ -150,7 +151,6 @@ def main(argv: list[str] | None = None) -> int:
 
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import TransformStamped
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     proc, log_path, timer, ctx, node = start_node_and_client(
@@ -165,31 +165,17 @@ def main(argv: list[str] | None = None) -> int:
         DiagnosticArray, "/diagnostics", obs.on_diagnostics,
         QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                    reliability=ReliabilityPolicy.RELIABLE))
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set() and ctx.ok():
-            ex.spin_once(timeout_sec=0.05)
-
-    spinner = threading.Thread(target=spin, name="spin", daemon=True)
-    spinner.start()
+    ex, stop, spinner = start_spinner(node, ctx)
 
     rc = 1
     survived = False
     try:
         # ------------------------------------------------------------ start-up
         t_launch = time.monotonic()
-        while time.monotonic() < min(deadline, t_launch + args.match_timeout):
-            if proc.poll() is not None:
-                raise RuntimeError(f"node exited (rc {proc.returncode}):\n{tail(log_path)}")
-            if pub.get_subscription_count() >= 1 and sub_d.get_publisher_count() >= 1:
-                break
-            time.sleep(0.05)
-        else:
-            raise RuntimeError(f"topics did not match within {args.match_timeout:g} s:\n"
-                               f"{tail(log_path)}")
+        wait_for_match(proc, log_path, min(deadline, t_launch + args.match_timeout),
+                       args.match_timeout,
+                       lambda: (pub.get_subscription_count() >= 1
+                                and sub_d.get_publisher_count() >= 1))
         idle = wait_node_idle(proc, log_path,
                               min(deadline, time.monotonic() + args.match_timeout))
         print(f"matched and idle {time.monotonic() - t_launch:.2f} s after launch "
