@@ -150,7 +150,7 @@ def orientation_markers(
             tip[axis] = axis_length
             axes.points.append(Point(x=0.0, y=0.0, z=0.0))
             axes.points.append(Point(x=tip[0], y=tip[1], z=tip[2]))
-            c = _color(*(shade * v for v in rgb), alpha)
+            c = _color(shade * rgb[0], shade * rgb[1], shade * rgb[2], alpha)
             axes.colors.extend([c, c])
         axes.color = _color(1.0, 1.0, 1.0, alpha)
         array.markers.append(axes)

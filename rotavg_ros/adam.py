@@ -11,6 +11,7 @@ full-width factors) where a torch build lacks it. Gradients are read from ``p.gr
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 
@@ -54,13 +55,16 @@ class Adam:
     @torch.no_grad()
     def step(self) -> None:
         """One update of every parameter from its ``.grad``."""
-        grads = [p.grad for p in self.params]
-        if any(g is None for g in grads):
-            raise RuntimeError("Adam.step: every parameter needs a .grad")
+        grads: list[torch.Tensor] = []
+        for p in self.params:
+            if p.grad is None:
+                raise RuntimeError("Adam.step: every parameter needs a .grad")
+            grads.append(p.grad)
         if self._fused:
             for s in self.steps:
                 s.add_(1.0)
-            lr = self.lr if self.lr_tensor is None else self.lr_tensor
+            # A float or a device tensor: _fused_adam_ has one overload for each.
+            lr: Any = self.lr if self.lr_tensor is None else self.lr_tensor
             torch._fused_adam_(
                 self.params, grads, self.exp_avg, self.exp_avg_sq, [], self.steps,
                 lr=lr, beta1=self.beta1, beta2=self.beta2, weight_decay=0.0,
@@ -69,7 +73,6 @@ class Adam:
             return
         for p, g, m, v, s in zip(self.params, grads, self.exp_avg, self.exp_avg_sq, self.steps,
                                  strict=True):
-            assert g is not None
             s.add_(1.0)
             t = float(s)
             m.lerp_(g, 1.0 - self.beta1)

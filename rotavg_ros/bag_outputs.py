@@ -14,7 +14,7 @@ written by ``rotavg replay`` holds what ``rotavg_node`` would have published:
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Mapping, Sequence
+from collections.abc import Hashable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -103,7 +103,7 @@ class MessageFactory:
         return bytes(self.typestore.serialize_cdr(msg, msg.__msgtype__))
 
     # ------------------------------------------------------------------ outputs
-    def transform(self, parent: str, child: str, quat_xyzw: Sequence[float],
+    def transform(self, parent: str, child: str, quat_xyzw: Iterable[float],
                   stamp_ns: int) -> Any:
         x, y, z, w = (float(v) for v in quat_xyzw)
         return self.new(
@@ -169,7 +169,7 @@ class MessageFactory:
                 tip = [0.0, 0.0, 0.0]
                 tip[axis] = axis_length
                 points += [origin, self.new(point, x=tip[0], y=tip[1], z=tip[2])]
-                c = self._color(*(shade * v for v in rgb), alpha)
+                c = self._color(shade * rgb[0], shade * rgb[1], shade * rgb[2], alpha)
                 colors += [c, c]
             qx, qy, qz, qw = (float(v) for v in quats[k])
             markers.append(self._marker(

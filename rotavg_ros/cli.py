@@ -38,10 +38,10 @@ def load_graph(path: Path, gt_only: bool = False) -> tuple[ViewGraph, dict[Hasha
             return read_g2o(path).graph, {}
         if name.endswith(".npz"):
             ds = read_1dsfm_npz(path, gt_only=gt_only)
-            return ds.graph, dict(ds.gt)
+            return ds.graph, {k: r for k, r in ds.gt.items()}
         if name.endswith(".txt"):
             ds = read_1dsfm_egs(path)
-            return ds.graph, dict(ds.gt)
+            return ds.graph, {k: r for k, r in ds.gt.items()}
     except (ValueError, KeyError, OSError) as exc:
         raise InputError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from exc
     raise InputError(f"{path}: unknown input format (expected .g2o, .npz or EGs .txt)")

@@ -57,11 +57,12 @@ def shared_dir_or_say(prog: str) -> Path | None:
 def load_ellis_island(shared: Path) -> Benchmark:
     """Ellis Island, the paper's protocol: GT cameras only (227 nodes, 20,010 edges)."""
     ds = read_1dsfm_npz(shared / "data/1dsfm/Ellis_Island/Ellis_Island.npz", gt_only=True)
-    return Benchmark("Ellis Island", ds.graph, dict(ds.gt), "1DSfM ground truth")
+    return Benchmark("Ellis Island", ds.graph, {k: r for k, r in ds.gt.items()},
+                     "1DSfM ground truth")
 
 
 def load_se_sync(shared: Path, name: str) -> Benchmark:
     """An SE-Sync graph with its certified-optimal reference rotations."""
     g = read_g2o(shared / f"data/se_sync_3d/{name}.g2o")
     ref = read_rotations_npz(shared / f"reference/se_sync_3d/{name}.npz")
-    return Benchmark(name, g.graph, dict(ref), "certified optimum")
+    return Benchmark(name, g.graph, {k: r for k, r in ref.items()}, "certified optimum")

@@ -10,7 +10,7 @@ Input edges are ``(i, j, R_ij)`` with ``i < j`` and ``R_ij ~= R_i R_j^T`` (world
 2. ``epsilon`` = median of all loop errors; per edge, the mean loop error and the support
    count ``s`` = number of its loops with ``delta < epsilon``.
 3. Kruskal's spanning forest with edges ordered by ``s`` descending, then mean error
-   ascending (ablation (b): mean error only).
+   ascending (ablation (b): mean error only); exact ties by weight, then input order.
 4. Tree rotations ``R_i^tree`` by traversal from each component's root; an edge is removed
    when ``d_chord(R_ij, R_i^tree R_j^tree^T) > sigma``.
 
@@ -28,6 +28,7 @@ is no reference and the edge is kept, left to the robust loss and reweighting of
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -81,7 +82,8 @@ def loop_statistics(
     edges3 = np.concatenate([tri.e_ab, tri.e_bc, tri.e_ac])
     delta3 = np.tile(delta, 3)
     count = np.bincount(edges3, minlength=num_edges).astype(np.float64)
-    total = np.bincount(edges3, weights=delta3, minlength=num_edges)
+    total = np.bincount(edges3, weights=delta3, minlength=num_edges).astype(np.float64,
+                                                                           copy=False)
     support = np.bincount(edges3, weights=(delta3 < epsilon).astype(np.float64),
                           minlength=num_edges).astype(np.int64)
     return support, total, count, epsilon, tri.count
@@ -114,13 +116,18 @@ def loop_errors(
 def priority_order(
     support: IntArray, mean_error: FloatArray, weight: FloatArray, use_support: bool
 ) -> IntArray:
-    """Edge indices from highest to lowest priority for the greedy tree."""
+    """Edge indices from highest to lowest priority for the greedy tree.
+
+    Triangle-supported edges first; then support count descending (unless
+    ``use_support`` is off), mean loop error ascending. Algorithm 1 leaves exact ties open
+    (two edges of a degree-2 node on one triangle tie on both keys); they go to the higher
+    weight, then the earlier input edge.
+    """
     idx = np.arange(support.size)
     untested = ~np.isfinite(mean_error)
     err = np.where(untested, np.inf, mean_error)
-    if use_support:
-        keys = (idx, -weight, err, -support, untested)
-    else:
+    keys: tuple[NDArray[Any], ...] = (idx, -weight, err, -support, untested)
+    if not use_support:
         keys = (idx, -weight, err, untested)
     return np.lexsort(keys).astype(np.int64)
 

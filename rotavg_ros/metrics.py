@@ -13,8 +13,9 @@ Conventions
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Mapping
+from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -139,13 +140,14 @@ class ErrorStats:
     max_deg: float
     errors: FloatArray
     """Per-node errors in degrees, in the order of ``ids``."""
-    ids: list[Hashable] = field(default_factory=list)
+    ids: Sequence[Hashable] = field(default_factory=list)
     R_align: FloatArray = field(default_factory=lambda: np.eye(3))
     """The right gauge ``Q``: ``R_est_i ~= R_gt_i Q``."""
 
 
-def evaluate(est: Mapping[Hashable, ArrayLike], gt: Mapping[Hashable, ArrayLike]) -> ErrorStats:
-    """L1-align ``est`` to ``gt`` over their common ids and summarise the errors."""
+def evaluate(est: Mapping[Any, ArrayLike], gt: Mapping[Any, ArrayLike]) -> ErrorStats:
+    """L1-align ``est`` to ``gt`` (node id -> world-to-node rotation) over their common ids
+    and summarise the errors."""
     ids = [k for k in est if k in gt]
     if not ids:
         raise ValueError("no common node ids between the estimate and the ground truth")

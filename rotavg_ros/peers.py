@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import importlib
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -43,6 +44,10 @@ from rotavg_ros.so3 import matrix_to_quat, project_to_so3
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+PeerFn = Callable[[int, ArrayLike, ArrayLike, ArrayLike, ArrayLike | None],
+                  tuple[FloatArray, float]]
+"""(num_nodes, i, j, R_ij, weight) -> (world-to-node rotations (N, 3, 3), wall seconds)."""
 
 PEER_NAMES = ("pycolmap_half_norm", "gtsam_shonan_huber", "gtsam_chordal")
 
@@ -337,7 +342,7 @@ def run_gtsam_chordal(
     return _gtsam_rotations(values, n), wall
 
 
-PEERS = {
+PEERS: dict[str, PeerFn] = {
     "pycolmap_half_norm": run_pycolmap_half_norm,
     "gtsam_shonan_huber": run_gtsam_shonan_huber,
     "gtsam_chordal": run_gtsam_chordal,

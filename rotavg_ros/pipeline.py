@@ -219,7 +219,7 @@ def default_solve(graph: ViewGraph, anchor: Hashable | None, options: SolverOpti
 
 def run_solver(
     graph: ViewGraph, anchor: Hashable | None, options: SolverOptions,
-    initial: Mapping[Hashable, FloatArray] | None = None, initial_depth: int | None = None,
+    initial: Mapping[Any, FloatArray] | None = None, initial_depth: int | None = None,
 ) -> SolveResult:
     """In-process :meth:`RotationAverager.solve`, optionally warm-started."""
     from rotavg_ros.solver import RotationAverager
@@ -254,7 +254,7 @@ class SubprocessSolver:
 
     def __call__(
         self, graph: ViewGraph, anchor: Hashable | None, options: SolverOptions,
-        initial: Mapping[Hashable, FloatArray] | None = None,
+        initial: Mapping[Any, FloatArray] | None = None,
         initial_depth: int | None = None,
     ) -> SolveResult:
         pool = self._get_pool()

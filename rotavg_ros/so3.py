@@ -22,10 +22,10 @@ def quat_to_matrix(q: ArrayLike) -> FloatArray:
 
     The quaternions are normalised first; a zero quaternion gives NaN.
     """
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty(q.shape[:-1] + (3, 3))
+    qa: FloatArray = np.asarray(q, dtype=np.float64)
+    qa = qa / np.linalg.norm(qa, axis=-1, keepdims=True)
+    x, y, z, w = qa[..., 0], qa[..., 1], qa[..., 2], qa[..., 3]
+    out = np.empty(qa.shape[:-1] + (3, 3))
     out[..., 0, 0] = 1 - 2 * (y * y + z * z)
     out[..., 0, 1] = 2 * (x * y - z * w)
     out[..., 0, 2] = 2 * (x * z + y * w)

@@ -13,6 +13,7 @@ import time
 from collections.abc import Hashable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -86,7 +87,7 @@ class RotationAverager:
         self,
         graph: ViewGraph,
         anchor: Hashable | None = None,
-        initial: Mapping[Hashable, FloatArray] | None = None,
+        initial: Mapping[Any, FloatArray] | None = None,
         initial_depth: int | None = None,
     ) -> SolveResult:
         """Solve every connected component of ``graph``.

@@ -195,7 +195,7 @@ def consolidate(
         return EdgeArrays(i[pick], j[pick], R[pick], w[pick], counts.astype(np.int64))
     group = np.repeat(np.arange(uniq.size), counts)
     Rs, ws = R[order], w[order]
-    total_w = np.bincount(group, weights=ws)
+    total_w = np.bincount(group, weights=ws).astype(np.float64, copy=False)
     mean = _group_sum(group, ws[:, None, None] * Rs, uniq.size) / total_w[:, None, None]
     est = project_to_so3(mean)
     multi = counts > 1

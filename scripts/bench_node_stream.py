@@ -115,7 +115,7 @@ def make_graph(nodes: int, edges: int, seed: int, noise_deg: float,
     Rw = random_rotations(nodes, rng)
     chain_i = np.arange(nodes - 1)
     pairs = {(int(a), int(a) + 1) for a in chain_i}
-    ii, jj = list(chain_i), list(chain_i + 1)
+    ii, jj = chain_i.tolist(), (chain_i + 1).tolist()
     max_pairs = nodes * (nodes - 1) // 2
     extra = edges - (nodes - 1)
     while extra > 0 and len(pairs) < max_pairs:

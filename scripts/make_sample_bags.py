@@ -87,7 +87,7 @@ def write_bag(path: Path, topics: dict[str, str], messages: Iterable[Message],
 
 def transform(f: MessageFactory, parent: str, child: str, R: np.ndarray, t_ns: int,
               translation: np.ndarray | None = None) -> Any:
-    msg = f.transform(parent, child, matrix_to_quat(R), t_ns)
+    msg = f.transform(parent, child, matrix_to_quat(R).tolist(), t_ns)
     if translation is not None:
         x, y, z = (float(v) for v in translation)
         msg.transform.translation = f.new("geometry_msgs/msg/Vector3", x=x, y=y, z=z)

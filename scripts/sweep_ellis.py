@@ -18,6 +18,7 @@ import argparse
 import sys
 import time
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -27,7 +28,7 @@ from rotavg_ros.metrics import evaluate
 from rotavg_ros.solver import average_rotations
 from rotavg_ros.solver_types import SolverOptions
 
-SPACE = {
+SPACE: dict[str, list[Any]] = {
     "sigma": [0.15, 0.2, 0.25, 0.3],
     "lr": [0.005, 0.01, 0.02],
     "init_scale": [1e-3, 1e-2, 1e-1],

@@ -20,7 +20,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable, Hashable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Hashable, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -187,7 +187,7 @@ class EdgeClient(Node):
 
     # ------------------------------------------------------------------ inputs
     def send_transform(
-        self, frame_i: str, frame_j: str, q: Sequence[float], stamp_sec: int = 0
+        self, frame_i: str, frame_j: str, q: Iterable[float], stamp_sec: int = 0
     ) -> None:
         msg = TransformStamped()
         msg.header.frame_id = frame_i
@@ -198,7 +198,7 @@ class EdgeClient(Node):
         self.pub_tf.publish(msg)
 
     def send_odometry(
-        self, frame_i: str, frame_j: str, q: Sequence[float], rot_variance: float = 0.0
+        self, frame_i: str, frame_j: str, q: Iterable[float], rot_variance: float = 0.0
     ) -> None:
         msg = Odometry()
         msg.header.frame_id = frame_i

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 import torch
@@ -52,7 +54,7 @@ def _error_deg(H: np.ndarray, R: np.ndarray) -> float:
 
 def test_early_stopping_ends_a_converged_fit() -> None:
     R, i, j, Rij = _clean_problem(12, 3)
-    base = dict(depth=4, hidden_width=36, iterations=1000, lr=0.01, warmup=100,
+    base: dict[str, Any] = dict(depth=4, hidden_width=36, iterations=1000, lr=0.01, warmup=100,
                 reweight_every=25, dtype="float64", seed=1)
     stopped = fit_symmetric(12, i, j, Rij, np.ones(i.size), DMFSettings(**base, tolerance=2e-3))
     assert 100 < stopped.iterations < 1000
@@ -63,7 +65,7 @@ def test_early_stopping_ends_a_converged_fit() -> None:
 def test_float32_fit_matches_float64() -> None:
     R, i, j, Rij = _clean_problem(10, 4)
     w = np.ones(i.size)
-    base = dict(depth=2, hidden_width=30, iterations=600, lr=0.01, warmup=100,
+    base: dict[str, Any] = dict(depth=2, hidden_width=30, iterations=600, lr=0.01, warmup=100,
                 reweight_every=25, seed=2)
     f32 = fit_symmetric(10, i, j, Rij, w, DMFSettings(**base, dtype="float32"))
     f64 = fit_symmetric(10, i, j, Rij, w, DMFSettings(**base, dtype="float64"))

@@ -174,9 +174,42 @@ def test_tree_rotations_on_a_70k_node_chain(index_dtype: type) -> None:
     # traversal returns int32 node arrays).
     n = 70_000
     R = random_rotations(n, np.random.default_rng(7))
-    i = np.arange(n - 1, dtype=index_dtype)
+    i: np.ndarray = np.arange(n - 1, dtype=index_dtype)
     j = i + 1
     Rij = np.einsum("eab,ecb->eac", R[i], R[j])
     rot = tree_rotations(i, j, Rij, np.arange(n - 1), n)
     expected = np.einsum("kab,cb->kac", R, R[0])
     np.testing.assert_allclose(rot, expected, atol=1e-8)
+
+
+@pytest.mark.parametrize("swap, weights, expected", [
+    (False, (1.0, 1.0), (1, 3)),  # exact tie: input order decides
+    (True, (1.0, 1.0), (2, 3)),
+    (False, (1.0, 2.0), (2, 3)),  # exact tie: higher weight first
+])
+def test_exact_priority_ties_fall_back_on_weight_then_input_order(
+    swap: bool, weights: tuple[float, float], expected: tuple[int, int]
+) -> None:
+    # Node 3's two edges lie on the same single triangle (1, 2, 3), so they tie on support
+    # count and mean loop error (Ellis Island's camera 23); they disagree by 40 deg, so the
+    # tree keeps exactly one of them.
+    rng = np.random.default_rng(7)
+    R = random_rotations(4, rng)
+    pairs = [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)]
+    if swap:
+        pairs[3], pairs[4] = pairs[4], pairs[3]
+    i = np.array([p[0] for p in pairs])
+    j = np.array([p[1] for p in pairs])
+    Rij = np.einsum("eab,ecb->eac", R[i], R[j])
+    Rij[pairs.index((2, 3))] = rotation_about_axis([1.0, 0.0, 0.0], np.radians(40.0)) @ Rij[
+        pairs.index((2, 3))]
+    w = np.ones(i.size)
+    w[pairs.index((1, 3))], w[pairs.index((2, 3))] = weights
+    res = filter_edges(i, j, Rij, w, 4, sigma=0.2)
+    a, b = pairs.index((1, 3)), pairs.index((2, 3))
+    assert res.support[a] == res.support[b]
+    assert res.mean_loop_error[a] == res.mean_loop_error[b]
+    chosen = [p for k, p in enumerate(pairs) if res.in_tree[k] and p in ((1, 3), (2, 3))]
+    assert chosen == [expected]
+    assert res.kept[pairs.index(expected)]
+    assert not res.kept[pairs.index((1, 3) if expected == (2, 3) else (2, 3))]

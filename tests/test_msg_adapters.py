@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -118,8 +119,8 @@ def rot_cov(vx: float, vy: float | None = None, vz: float | None = None) -> np.n
     return cov
 
 
-TRANSFORM_BUILDERS = [rclpy_transform, rosbags_transform]
-ODOMETRY_BUILDERS = [rclpy_odometry, rosbags_odometry]
+TRANSFORM_BUILDERS: list[Callable[..., Any]] = [rclpy_transform, rosbags_transform]
+ODOMETRY_BUILDERS: list[Callable[..., Any]] = [rclpy_odometry, rosbags_odometry]
 
 
 # ---------------------------------------------------------------------- conventions

@@ -15,12 +15,13 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Hashable
+from collections.abc import Callable, Hashable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
-from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
 from ros_fixtures import (
@@ -46,8 +47,8 @@ from rotavg_ros.solver_types import SolveResult, SolverOptions
 from rotavg_ros.view_graph import ViewGraph
 
 REPO = Path(__file__).resolve().parents[1]
-EXECUTORS = {"single": SingleThreadedExecutor, "multi": MultiThreadedExecutor,
-             "events": EventsExecutor}
+EXECUTORS: dict[str, Callable[..., Executor]] = {
+    "single": SingleThreadedExecutor, "multi": MultiThreadedExecutor, "events": EventsExecutor}
 FAST_SOLVER = [
     Parameter("iterations", value=300),
     Parameter("depths", value=[2, 4]),
@@ -56,7 +57,7 @@ FAST_SOLVER = [
 
 def start_pair(
     h: RosHarness, *, solve_fn: object = spanning_tree_solve,
-    overrides: list[Parameter] | None = None, **node_kwargs: object,
+    overrides: list[Parameter] | None = None, **node_kwargs: Any,
 ) -> tuple[RotavgNode, EdgeClient]:
     """Node under test (long solve_period unless overridden: tests drive ~/solve) + client."""
     params = [Parameter("solve_period", value=3600.0)] + list(overrides or [])
@@ -131,9 +132,14 @@ def test_synthetic_graph_with_outliers_matches_ground_truth(ros: RosHarness) -> 
     assert errors.max() <= 3.0 and errors.mean() <= 1.5, errors
     est = client.latest_orientations()
     np.testing.assert_allclose(est[names[0]], np.eye(3), atol=1e-6)  # first frame = anchor
-    assert wait_until(lambda: client.latest_diagnostics() is not None
-                      and client.latest_diagnostics()[2].get("solved_nodes") == str(n), 10.0)
-    _, _, values = client.latest_diagnostics()  # type: ignore[misc]
+    def solved() -> bool:
+        diag = client.latest_diagnostics()
+        return diag is not None and diag[2].get("solved_nodes") == str(n)
+
+    assert wait_until(solved, 10.0)
+    diag = client.latest_diagnostics()
+    assert diag is not None
+    _, _, values = diag
     assert int(values["filtered_outliers"]) > 0
     assert int(values["depth"]) in (2, 4)
     assert float(values["residual_median_deg"]) < 5.0
@@ -597,8 +603,11 @@ def test_shipped_params_file_via_context_args(tmp_path: Path) -> None:
     changed = tmp_path / "rotavg.yaml"
     changed.write_text(text.replace("world_frame: world ", "world_frame: shipped_check ")
                        .replace("iterations: 1000 ", "iterations: 1234 "))
-    for path, expected in [(REPO / "config" / "rotavg.yaml", {}),
-                           (changed, {"world_frame": "shipped_check", "iterations": 1234})]:
+    cases: list[tuple[Path, dict[str, Any]]] = [
+        (REPO / "config" / "rotavg.yaml", {}),
+        (changed, {"world_frame": "shipped_check", "iterations": 1234}),
+    ]
+    for path, expected in cases:
         with RosHarness(args=["--ros-args", "--params-file", str(path)]) as h:
             node = h.add(RotavgNode(solve_fn=spanning_tree_solve, context=h.context,
                                     namespace=h.namespace))

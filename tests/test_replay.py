@@ -430,7 +430,9 @@ def test_corrupt_chunk_in_rosbag2_directory(tmp_path: Path) -> None:
     from mcap.reader import make_reader
 
     with open(mcap, "rb") as fh:
-        chunks = make_reader(fh).get_summary().chunk_indexes
+        summary = make_reader(fh).get_summary()
+    assert summary is not None
+    chunks = summary.chunk_indexes
     assert len(chunks) > 4
     bad = chunks[len(chunks) // 2]
     data = bytearray(mcap.read_bytes())

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import replace
 from itertools import combinations
+from typing import Any, cast
 
 import numpy as np
 import pytest
 
-from rotavg_ros.metrics import evaluate
+from rotavg_ros.metrics import ErrorStats, evaluate
 from rotavg_ros.so3 import geodesic_distance, random_rotations, rotation_about_axis
 from rotavg_ros.solver import RotationAverager, average_rotations, warm_start_rotations
 from rotavg_ros.solver_types import SolveResult, SolverOptions
@@ -61,7 +62,7 @@ def _graph(meas: Sequence[tuple[Hashable, Hashable, np.ndarray]],
     return g
 
 
-def _errors(res: SolveResult, truth: dict[Hashable, np.ndarray]):
+def _errors(res: SolveResult, truth: Mapping[Any, np.ndarray]) -> ErrorStats:
     est = {k: res.rotations[idx] for idx, k in enumerate(res.node_ids)}
     return evaluate(est, truth)
 
@@ -237,7 +238,7 @@ def test_multiple_components_and_isolated_node() -> None:
         _assert_identity(res.rotations[g.index_of(anchor)])
     np.testing.assert_array_equal(res.rotations[alone], np.eye(3))  # untouched: exact
     # Each component is solved correctly in its own gauge.
-    anchor_a = res.anchors[1][1]
+    anchor_a = cast(tuple[str, int], res.anchors[1])[1]
     exp_a = np.einsum("kab,cb->kac", Ra, Ra[anchor_a])
     exp_b = np.einsum("kab,cb->kac", Rb, Rb[0])
     assert np.degrees(geodesic_distance(res.rotations[idx_a], exp_a)).max() < 0.01
