@@ -10,13 +10,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Hashable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from pathlib import Path
 
 import numpy as np
 
-from rotavg_ros.io_1dsfm import read_1dsfm_egs, read_1dsfm_npz, read_rotations_npz
-from rotavg_ros.io_g2o import read_g2o, read_g2o_vertices, write_g2o
+from rotavg_ros.io_1dsfm import open_npz, read_1dsfm_egs, read_1dsfm_npz, read_rotations_npz
+from rotavg_ros.io_g2o import EDGE_TAG, VERTEX_TAG, read_g2o, read_g2o_vertices, write_g2o
 from rotavg_ros.metrics import evaluate
 from rotavg_ros.replay import register as register_replay
 from rotavg_ros.solver import RotationAverager
@@ -28,14 +28,29 @@ class InputError(Exception):
     """Unusable input; the message names the file (and line where known)."""
 
 
-def load_graph(path: Path, gt_only: bool = False) -> tuple[ViewGraph, dict[Hashable, np.ndarray]]:
-    """Read ``.g2o``, a 1DSfM ``.npz`` or ``EGs.txt``; returns the graph and any GT."""
+def load_graph(
+    path: Path, gt_only: bool = False, warn: Callable[[str], None] | None = None,
+) -> tuple[ViewGraph, dict[Hashable, np.ndarray]]:
+    """Read ``.g2o``, a 1DSfM ``.npz`` or ``EGs.txt``; returns the graph and any GT.
+
+    ``warn`` gets a line about g2o lines skipped for their tag (e.g. ``EDGE_SE2``).
+    """
     if not path.exists():
         raise InputError(f"{path}: no such file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a directory, not a graph file")
     name = path.name.lower()
     try:
         if name.endswith(".g2o"):
-            return read_g2o(path).graph, {}
+            g2o = read_g2o(path)
+            skipped = ", ".join(f"{tag} x{n}" for tag, n in sorted(g2o.skipped_tags.items()))
+            if g2o.num_edges == 0:
+                raise InputError(f"{path}: no {EDGE_TAG} edges"
+                                 + (f" (skipped lines: {skipped})" if skipped else ""))
+            if skipped and warn is not None:
+                warn(f"{path}: skipped lines with tags not used for rotation averaging: "
+                     f"{skipped}")
+            return g2o.graph, {}
         if name.endswith(".npz"):
             ds = read_1dsfm_npz(path, gt_only=gt_only)
             return ds.graph, {k: r for k, r in ds.gt.items()}
@@ -54,7 +69,9 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--mode", default=d.mode, choices=("auto", "dense", "sparse"),
                    help="dense: the paper's DMF; sparse: chordal start + Huber + L-BFGS for "
                    "chain-like SLAM graphs; auto: by mean degree (default %(default)s)")
-    g.add_argument("--seed", type=int, default=d.seed)
+    g.add_argument("--seed", type=int, default=d.seed,
+                   help="random seed; a seed gives bitwise-equal results on the CPU "
+                   "(default %(default)s)")
     g.add_argument("--depths", default=",".join(map(str, d.depths)),
                    help="candidate depths, comma separated (default %(default)s)")
     g.add_argument("--iterations", type=int, default=d.iterations,
@@ -64,12 +81,17 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    "(0 = off; default %(default)s)")
     g.add_argument("--dtype", default=d.dtype, choices=("float32", "float64"),
                    help="dense mode: precision of the Adam fit (default %(default)s)")
-    g.add_argument("--lr", type=float, default=d.lr)
+    g.add_argument("--lr", type=float, default=d.lr,
+                   help="dense mode: initial Adam step size, cosine decay (default %(default)s)")
     g.add_argument("--sigma", type=float, default=d.sigma,
                    help="filter threshold on d_chord(R_ij, R_ij^tree) (default %(default)s)")
     g.add_argument("--device", default=d.device, help="cpu, cuda or auto")
-    g.add_argument("--threads", type=int, default=None)
-    g.add_argument("--hidden-width", type=int, default=None)
+    g.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads, split among the depth candidates (default: one "
+                   "per candidate, candidates in parallel up to the CPU count)")
+    g.add_argument("--hidden-width", type=int, default=None,
+                   help="width of H's hidden factors (>= 3; default: 3N up to 300 nodes, "
+                   "64 above)")
     g.add_argument("--no-filter", action="store_true", help="ablation (a)")
     g.add_argument("--no-support-count", action="store_true", help="ablation (b)")
     g.add_argument("--no-explicit-constraint", action="store_true", help="ablation (c)")
@@ -97,11 +119,19 @@ def _stderr(text: str) -> None:
     print(f"[rotavg] {text}", file=sys.stderr, flush=True)
 
 
+def _warn(text: str) -> None:
+    print(f"rotavg: warning: {text}", file=sys.stderr, flush=True)
+
+
 def cmd_solve(args: argparse.Namespace) -> int:
-    graph, _ = load_graph(Path(args.input), gt_only=args.gt_only)
+    options = options_from_args(args)
+    options.validate()  # before reading a large input
+    out_dir = Path(args.output).resolve().parent
+    if not out_dir.is_dir():
+        raise InputError(f"{args.output}: output directory {out_dir} does not exist")
+    graph, _ = load_graph(Path(args.input), gt_only=args.gt_only, warn=_warn)
     if graph.num_nodes == 0:
         raise InputError(f"{args.input}: no edges")
-    options = options_from_args(args)
     t0 = time.perf_counter()
     result = RotationAverager(options).solve(graph)
     wall = time.perf_counter() - t0
@@ -112,7 +142,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         print(f"solved {graph.num_nodes} nodes, {graph.edge_arrays().num_edges} edges in "
               f"{wall:.2f} s: depth {result.depth}, {result.num_filtered} edges filtered, "
               f"{ncomp} component(s), inlier residual median "
-              f"{np.median(inl) if inl.size else float('nan'):.3f} deg -> {args.output}")
+              f"{f'{np.median(inl):.3f} deg' if inl.size else 'n/a'} -> {args.output}")
     return 0
 
 
@@ -120,14 +150,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     ids, rots = read_g2o_vertices(args.estimate)
     est = {k: r for k, r in zip(ids, rots, strict=True)}
     gt_path = Path(args.ground_truth)
+    if not gt_path.is_file():
+        raise InputError(f"{gt_path}: no such file")
     if gt_path.suffix == ".npz":
-        with np.load(gt_path) as data:
+        with open_npz(gt_path) as data:
             is_dataset = "edges" in data.files
         gt = (dict(read_1dsfm_npz(gt_path, gt_only=True).gt) if is_dataset
               else dict(read_rotations_npz(gt_path)))
     else:
         raise InputError(f"{gt_path}: ground truth must be a 1DSfM .npz or a reference .npz")
+    if not est:
+        raise InputError(f"{args.estimate}: no {VERTEX_TAG} lines")
     stats = evaluate(est, gt)
+    missing = len(set(gt) - set(est))
+    extra = len(set(est) - set(gt))
+    if missing or extra:
+        _warn(f"scored the {stats.num_nodes} common node(s) only: {missing} ground-truth "
+              f"node(s) have no estimate, {extra} estimated node(s) have no ground truth")
     print(f"nodes {stats.num_nodes}  mean {stats.mean_deg:.3f} deg  "
           f"median {stats.median_deg:.3f} deg  max {stats.max_deg:.3f} deg")
     return 0
@@ -147,7 +186,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--output", "-o", required=True, help="output .g2o (node-to-world quats)")
     s.add_argument("--gt-only", action="store_true",
                    help="1DSfM .npz: keep only cameras with ground truth (paper protocol)")
-    s.add_argument("--quiet", "-q", action="store_true")
+    s.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress lines and no result line (warnings and errors still)")
     add_solver_arguments(s)
     s.set_defaults(func=cmd_solve)
     e = sub.add_parser("evaluate", help="gauge-align an estimate and print its errors")

@@ -14,9 +14,10 @@ File format: standard g2o, readable by any g2o tool, plus comment lines for what
 from __future__ import annotations
 
 import os
-from collections.abc import Hashable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,7 +48,7 @@ class StoredGraph:
 
 def save_graph(
     path: str | os.PathLike[str], graph: ViewGraph,
-    orientations: Mapping[Hashable, FloatArray] | None = None,
+    orientations: Mapping[Any, FloatArray] | None = None,
 ) -> int:
     """Write ``graph`` (and the world-to-node ``orientations``, if any) atomically.
 

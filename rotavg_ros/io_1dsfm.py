@@ -14,6 +14,11 @@ from __future__ import annotations
 
 import math
 import os
+import pickle
+import zipfile
+import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,6 +50,25 @@ class Dataset1DSfM:
 
 
 # ------------------------------------------------------------------ validation
+@contextmanager
+def open_npz(path: PathLike) -> Iterator[np.lib.npyio.NpzFile]:
+    """``np.load`` of an ``.npz`` archive; an empty, truncated or damaged file, or one that
+    is not an archive, raises :class:`DatasetFormatError` naming it."""
+    p = os.fspath(path)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (EOFError, zipfile.BadZipFile, pickle.UnpicklingError) as exc:
+        raise DatasetFormatError(f"{p}: not a readable .npz archive ({exc})") from exc
+    except ValueError as exc:  # numpy: "pickled data" / "not an npy file"
+        raise DatasetFormatError(f"{p}: not an .npz archive ({exc})") from exc
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise DatasetFormatError(f"{p}: a single .npy array, not an .npz archive")
+    try:
+        with data:
+            yield data
+    except (EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise DatasetFormatError(f"{p}: damaged .npz archive ({exc})") from exc
+
 def _orthogonality_error(R: FloatArray) -> FloatArray:
     E = np.einsum("kji,kjl->kil", R, R) - np.eye(3)
     return np.sqrt(np.einsum("kab,kab->k", E, E))
@@ -143,7 +167,7 @@ def read_1dsfm_npz(path: PathLike, gt_only: bool = False) -> Dataset1DSfM:
     indices in ascending id order; all edges have unit weight.
     """
     p = os.fspath(path)
-    with np.load(path, allow_pickle=False) as data:
+    with open_npz(path) as data:
         e = _edge_index(path, _load_key(data, path, "edges"))
         R_rel_raw = _load_key(data, path, "R_rel")
         if R_rel_raw.shape[:1] != (e.shape[0],):
@@ -161,7 +185,8 @@ def read_1dsfm_npz(path: PathLike, gt_only: bool = False) -> Dataset1DSfM:
                     f"{p}: edge index {int(e.max())} out of range of 'R_gt' ({R_gt.shape[0]})")
             gt = {int(k): R_gt[k] for k in np.flatnonzero(has_gt)}
         elif gt_only:
-            raise DatasetFormatError(f"{p}: gt_only=True but the file has no 'R_gt'")
+            raise DatasetFormatError(
+                f"{p}: no ground truth ('R_gt') in this file; --gt-only and evaluation need it")
     if gt_only:
         keep = has_gt[e[:, 0]] & has_gt[e[:, 1]]
         e, R_rel = e[keep], R_rel[keep]
@@ -220,7 +245,7 @@ def read_rotations_npz(path: PathLike) -> dict[int, FloatArray]:
     Reads ``R_ref`` or else ``R_gt`` (N, 3, 3); rows with ``has_gt`` false (or, without
     ``has_gt``, all-zero ``R_gt`` rows) are left out. Rotations are validated and projected.
     """
-    with np.load(path, allow_pickle=False) as data:
+    with open_npz(path) as data:
         if "R_ref" in data.files:
             key = "R_ref"
         elif "R_gt" in data.files:

@@ -46,6 +46,9 @@ UNSUPPORTED_TAGS: frozenset[str] = frozenset({
 _N_INFO = 21
 _ROT_INFO = slice(15, 21)  # I44 I45 I46 I55 I56 I66
 _MIN_QUAT_NORM = 1e-6
+QUAT_NORM_TOL = 1e-3
+"""Largest accepted | ||q|| - 1 | of a quaternion (as the node's ``quaternion_tolerance``);
+within it q is normalised, beyond it the line is rejected as not a rotation."""
 
 
 class G2oFormatError(ValueError):
@@ -94,8 +97,13 @@ class EdgeLike(Protocol):
 
 # ------------------------------------------------------------------ parsing helpers
 def _read_lines(path: PathLike) -> list[str]:
-    with open(path, encoding="utf-8") as fh:
-        return fh.read().splitlines()
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    try:
+        return raw.decode("utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise G2oFormatError(path, line, "not a UTF-8 text file (binary data?)") from None
 
 
 def _tokenized(lines: Iterable[str]) -> Iterator[tuple[int, list[str]]]:
@@ -127,6 +135,9 @@ def _quat(path: PathLike, lineno: int, q: Sequence[float]) -> FloatArray:
     norm = math.sqrt(sum(v * v for v in q))
     if norm < _MIN_QUAT_NORM:
         raise G2oFormatError(path, lineno, f"degenerate quaternion (norm {norm:.3g})")
+    if abs(norm - 1.0) > QUAT_NORM_TOL:
+        raise G2oFormatError(path, lineno, f"quaternion norm {norm:.6g} is not 1 (tolerance "
+                             f"{QUAT_NORM_TOL:g}): not a rotation")
     return quat_to_matrix(np.asarray(q, dtype=np.float64))
 
 
@@ -176,8 +187,9 @@ def read_g2o(path: PathLike, strict: bool = True) -> G2oGraph:
     Edge rotations become ``R_ij ~= R_i R_j^T`` (world-to-node ``R_i``) with raw weight
     ``trace(rotation information) / 3``. Known but unused tags are counted and skipped; an
     unknown tag raises :class:`G2oFormatError` unless ``strict=False`` (then it is counted
-    and skipped). Malformed lines, self-loops, NaN/Inf, zero quaternions, a non-positive-
-    definite rotation information block and duplicate vertex ids always raise.
+    and skipped). Malformed lines, self-loops, NaN/Inf, zero or non-unit quaternions
+    (beyond :data:`QUAT_NORM_TOL`), a non-positive-definite rotation information block and
+    duplicate vertex ids always raise.
     """
     graph = ViewGraph()
     vertices: dict[int, FloatArray] = {}

@@ -50,8 +50,10 @@ at a time (:meth:`RotavgNode.request_solve` callers that find a solve queued and
 share it).
 
 Every output of a solve (orientations, markers, diagnostics) carries the same stamp: the node
-clock's time when the graph snapshot for that solve was taken. Between solves, the timer
-republishes the diagnostics (stamped now) only when the counters moved, e.g. after rejections.
+clock's time when the graph snapshot for that solve was taken. Besides, the diagnostics are
+published every ``DIAGNOSTICS_PERIOD_S`` (1 s, stamped now), as diagnostic aggregators expect.
+``~/orientations`` and ``~/markers`` are transient-local: a late subscriber that asks for that
+durability gets the last solve's output.
 
 Diagnostics (one ``DiagnosticStatus`` named ``"<node name>: rotation averaging"``, hardware_id
 = the node's fully qualified name): ``nodes``, ``measurements``, ``edges_received``,
@@ -105,8 +107,9 @@ from __future__ import annotations
 
 import concurrent.futures
 import os
+import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -121,11 +124,11 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import InvalidHandle
+from rclpy.exceptions import InvalidHandle, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -165,6 +168,8 @@ from rotavg_ros.solver_types import SolveResult
 
 INGEST_BATCH = 256
 """Queued edges a callback of the ingest group takes beyond the one it was given."""
+DIAGNOSTICS_PERIOD_S = 1.0
+"""Period of the /diagnostics publication besides solves (aggregators expect about 1 Hz)."""
 SOLVE_POLL_S = 0.01
 """While ``~/solve`` waits for its solve, it looks for queued edges this often (s)."""
 
@@ -259,7 +264,8 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
         "rotation, new ones start from the spanning tree; dense mode then runs a short "
         "fit at the previous depth)."),
     "device": _descriptor(
-        "Torch device of the solver, e.g. cpu or cuda:0.", constraints="torch device string"),
+        "Torch device of the solver: cpu, cuda, cuda:N or auto (CUDA when available).",
+        constraints="cpu, cuda, cuda:N or auto"),
     "threads": _descriptor(
         "Torch CPU threads for the solver, split among the depth candidates; 0 = one "
         "thread per candidate, candidates in parallel up to the CPU count.", int_range=(0, 1024)),
@@ -311,11 +317,16 @@ class RotavgNode(Node):
             and self.get_parameter("solve_in_subprocess").value else None)
         self._acc = make_accumulator(self.get_parameter("repeat_policy").value)
         self._graph_file = str(self.get_parameter("graph_file").value)
+        # Orientations stored in graph_file: the warm start of the first solve after a
+        # restart (then the last result takes over); cleared by ~/reset.
+        self._stored_orientations: Mapping[Any, Any] | None = None
         if self._graph_file and os.path.exists(self._graph_file):
             stored = load_graph(self._graph_file)  # a broken file stops the start: say why
             self._acc.add_many(stored.measurements)
+            self._stored_orientations = stored.orientations or None
             self.get_logger().info(
-                f"loaded {len(stored.measurements)} measurements from {self._graph_file}")
+                f"loaded {len(stored.measurements)} measurements and "
+                f"{len(stored.orientations)} orientations from {self._graph_file}")
 
         # Scheduling state, guarded by _sched_lock.
         self._sched_lock = threading.Lock()
@@ -326,7 +337,6 @@ class RotavgNode(Node):
         self._forced: concurrent.futures.Future[SolveOutcome] | None = None
         self._last_attempted_version = -1
         self._tick_skipped = False  # a busy tick saw a changed graph: solve after the running one
-        self._last_diag_received = -1
         self._closing = False
         # Held from the worker's "was the graph reset?" check to the end of its publishing,
         # and by ~/reset: a reset never interleaves with the publication of a stale result.
@@ -350,10 +360,13 @@ class RotavgNode(Node):
             depth=self.get_parameter("qos_depth").value,
             reliability=ReliabilityPolicy.RELIABLE,
         )
+        # Transient local: a subscriber that joins later (and asks for transient-local
+        # durability) still gets the last solve's orientations, as with /tf_static.
         out_qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST,
             depth=self.get_parameter("orientations_qos_depth").value,
             reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
         )
         self._sub_tf = self.create_subscription(
             TransformStamped, "~/edges", self._on_transform, in_qos,
@@ -366,7 +379,9 @@ class RotavgNode(Node):
         self._pub_orientations = self.create_publisher(
             TransformStamped, "~/orientations", out_qos
         )
-        self._pub_markers = self.create_publisher(MarkerArray, "~/markers", 10)
+        self._pub_markers = self.create_publisher(MarkerArray, "~/markers", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._srv_solve = self.create_service(
             Trigger, "~/solve", self._on_solve_request, callback_group=self._ingest_group
@@ -380,6 +395,9 @@ class RotavgNode(Node):
         self._timer = self.create_timer(
             self.get_parameter("solve_period").value, self._on_timer,
             callback_group=self._control_group,
+        )
+        self._diag_timer = self.create_timer(
+            DIAGNOSTICS_PERIOD_S, self._on_diagnostics_timer, callback_group=self._control_group,
         )
         self.get_logger().info(
             f"averaging rotations from {self._sub_tf.topic_name} and "
@@ -411,7 +429,10 @@ class RotavgNode(Node):
         """Stop the worker (waits for a running solve), save the graph, destroy the node."""
         if self._graph_file and self._acc.stats().accepted:
             ok, message = self.save_graph()
-            (self.get_logger().info if ok else self.get_logger().error)(message)
+            if self.context.ok():
+                (self.get_logger().info if ok else self.get_logger().error)(message)
+            else:  # after Ctrl-C / SIGTERM the context is down: /rosout is gone
+                print(f"[{self.get_name()}] {message}", file=sys.stderr, flush=True)
         with self._sched_lock:
             self._closing = True
         self._pool.shutdown(wait=True, cancel_futures=True)
@@ -490,10 +511,12 @@ class RotavgNode(Node):
                 return
             if changed:
                 self._submit_locked(force=False)
+
+    def _on_diagnostics_timer(self) -> None:
+        with self._sched_lock:
+            if self._closing:
                 return
-            republish = stats.received != self._last_diag_received
-        if republish:  # counters moved (e.g. rejections) without a graph change
-            self._publish_diagnostics(self.get_clock().now().to_msg(), stats)
+        self._publish_diagnostics(self.get_clock().now().to_msg())
 
     def _on_solve_request(
         self, request: Trigger.Request, response: Trigger.Response
@@ -516,6 +539,7 @@ class RotavgNode(Node):
         with self._publish_lock:
             self._acc.reset()
             self._book.reset()
+            self._stored_orientations = None
         self.get_logger().info("graph reset")
         response.success = True
         response.message = "graph and counters cleared"
@@ -533,7 +557,8 @@ class RotavgNode(Node):
             return False, "graph_file parameter is empty: nowhere to save"
         snap = self._acc.snapshot()
         last = self._book.last_result
-        orientations = dict(zip(last.node_ids, last.rotations, strict=True)) if last else None
+        orientations = (dict(zip(last.node_ids, last.rotations, strict=True)) if last
+                        else self._stored_orientations)
         try:
             count = save_graph(self._graph_file, snap.graph, orientations)
         except OSError as exc:
@@ -581,7 +606,7 @@ class RotavgNode(Node):
             self._last_attempted_version = snap.version
         stamp = self.get_clock().now().to_msg()
         attempt = solve_snapshot(snap, settings, self._solve_fn, self._book.last_result,
-                                 self._runner)
+                                 self._runner, self._stored_orientations)
         if attempt.status == SOLVED:
             with self._publish_lock:
                 if self._acc.generation != snap.generation:
@@ -622,8 +647,6 @@ class RotavgNode(Node):
             diagnostic_name(self.get_name()), level, message, values,
             hardware_id=self.get_fully_qualified_name(),
         )
-        with self._sched_lock:
-            self._last_diag_received = stats.received
         self._pub_diag.publish(diagnostic_array([status], stamp))
 
 
@@ -634,6 +657,9 @@ FASTDDS_PROFILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fast
 def main(args: Sequence[str] | None = None) -> None:
     """Console script ``rotavg_node``: spin the node on a SingleThreadedExecutor.
 
+    A parameter the node refuses or a broken ``graph_file`` ends it with exit status 2 and
+    one line on stderr that says why.
+
     Unless ``FASTRTPS_DEFAULT_PROFILES_FILE`` is set, it points Fast DDS at
     :data:`FASTDDS_PROFILE` first (read when the DDS participant is created; other RMWs
     ignore it). Processes that embed :class:`RotavgNode` can set the variable themselves.
@@ -643,7 +669,12 @@ def main(args: Sequence[str] | None = None) -> None:
     rclpy.init(args=list(args) if args is not None else None)
     node: RotavgNode | None = None
     try:
-        node = RotavgNode()
+        try:
+            node = RotavgNode()
+        except (ValueError, OSError, InvalidParameterValueException) as exc:
+            # A refused parameter or an unreadable graph_file: one line, no traceback.
+            print(f"rotavg_node: error: {exc}", file=sys.stderr, flush=True)
+            sys.exit(2)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

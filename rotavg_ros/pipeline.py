@@ -113,25 +113,19 @@ class Level(IntEnum):
 
 
 def validate_parameter(name: str, value: Any) -> str | None:
-    """Reason why ``value`` is not acceptable for parameter ``name``, or None."""
+    """Reason why ``value`` is not acceptable for parameter ``name``, or None.
+
+    The solver parameters (``mode``, ``depths``, ``iterations``, ``sigma``, ``device``, ...)
+    are checked together by :meth:`SolverOptions.validate` in :func:`settings_from_parameters`.
+    """
     if name == "repeat_policy":
         try:
             RepeatPolicy(value)
         except ValueError:
             return f"repeat_policy must be one of merge, latest, first; got {value!r}"
-    elif name == "mode":
-        if value not in ("auto", "dense", "sparse"):
-            return f"mode must be one of auto, dense, sparse; got {value!r}"
-    elif name == "depths":
-        depths = list(value)
-        if not depths or any(int(d) <= 0 or int(d) % 2 for d in depths):
-            return f"depths must be a non-empty list of positive even integers; got {depths}"
     elif name == "world_frame":
         if not value or value.startswith("/") or not value.isprintable() or " " in value:
             return f"world_frame must be a non-empty tf2 frame id; got {value!r}"
-    elif name == "device":
-        if not str(value).strip():
-            return "device must not be empty"
     elif name in ("min_weight", "max_weight", "reference_variance", "marker_spacing"):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             return f"{name} must be a finite number > 0; got {value!r}"
@@ -185,6 +179,8 @@ def settings_from_parameters(
             raise ValueError(reason)
     if float(p["min_weight"]) > float(p["max_weight"]):
         raise ValueError("min_weight > max_weight")
+    options = solver if solver is not None else solver_options_from_parameters(p)
+    options.validate()
     return Settings(
         world_frame=str(p["world_frame"]),
         anchor_frame=str(p["anchor_frame"]),
@@ -198,7 +194,7 @@ def settings_from_parameters(
             max_weight=float(p["max_weight"]),
             reserved_frames=frozenset({str(p["world_frame"])}),
         ),
-        solver=solver if solver is not None else solver_options_from_parameters(p),
+        solver=options,
         warm_start=bool(p["warm_start"]),
     )
 
@@ -243,10 +239,12 @@ class SubprocessSolver:
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
         self._niceness = niceness
+        self._solved = 0  # solves the current child has returned
 
     def _get_pool(self) -> ProcessPoolExecutor:
         with self._lock:
             if self._pool is None:
+                self._solved = 0
                 self._pool = ProcessPoolExecutor(
                     max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                     initializer=_init_child, initargs=(self._niceness,))
@@ -260,12 +258,24 @@ class SubprocessSolver:
         pool = self._get_pool()
         options = dataclasses.replace(options, progress=None)  # callables do not pickle
         try:
-            return pool.submit(run_solver, graph, anchor, options,
-                               dict(initial) if initial else None, initial_depth).result()
-        except BrokenProcessPool:
+            result = pool.submit(run_solver, graph, anchor, options,
+                                 dict(initial) if initial else None, initial_depth).result()
+        except BrokenProcessPool as exc:
             with self._lock:
                 self._pool = None
-            raise
+                first = self._solved == 0
+            if first:
+                raise RuntimeError(
+                    "the solver child process died before returning its first solve. A "
+                    "script that creates RotavgNode must do so under `if __name__ == "
+                    "\"__main__\":` (the child is started with multiprocessing 'spawn', which "
+                    "re-imports the main module) or set solve_in_subprocess:=false; otherwise "
+                    "the child was killed or ran out of memory") from exc
+            raise RuntimeError("the solver child process died during the solve (killed, or "
+                               "out of memory?); the next solve starts a new one") from exc
+        with self._lock:
+            self._solved += 1
+        return result
 
     def warm_up(self) -> None:
         """Start the child and import the solver there, ahead of the first solve."""
@@ -293,13 +303,18 @@ def _init_child(niceness: int) -> None:
         os.nice(niceness)
 
 
-def _runner_fn(runner: Runner, previous: SolveResult | None) -> SolveFn:
-    """A :data:`SolveFn` that calls ``runner``, warm-started from ``previous`` if given."""
-    if previous is None:
-        return lambda graph, anchor, options: runner(graph, anchor, options, None, None)
-    initial = dict(zip(previous.node_ids, previous.rotations, strict=True))
-    depth = previous.depth or None
-    return lambda graph, anchor, options: runner(graph, anchor, options, initial, depth)
+def _runner_fn(
+    runner: Runner, previous: SolveResult | None,
+    initial: Mapping[Any, FloatArray] | None = None,
+) -> SolveFn:
+    """A :data:`SolveFn` that calls ``runner``, warm-started from ``previous`` if given,
+    else from ``initial`` rotations (at the first candidate depth) if given."""
+    depth: int | None = None
+    if previous is not None:
+        initial = dict(zip(previous.node_ids, previous.rotations, strict=True))
+        depth = previous.depth or None
+    start = dict(initial) if initial else None
+    return lambda graph, anchor, options: runner(graph, anchor, options, start, depth)
 
 
 # ---------------------------------------------------------------------- solving
@@ -357,12 +372,14 @@ def choose_anchor(graph: ViewGraph, first_node: Hashable | None,
 def solve_snapshot(
     snap: GraphSnapshot, settings: Settings, solve_fn: SolveFn | None = None,
     previous: SolveResult | None = None, runner: Runner | None = None,
+    initial: Mapping[Any, FloatArray] | None = None,
 ) -> SolveAttempt:
     """Choose the anchor and solve ``snap.graph`` with ``settings.solver``.
 
     ``solve_fn`` (a test hook) replaces the solver outright. Otherwise ``runner`` (default
     :func:`run_solver`, in process; the node passes a :class:`SubprocessSolver`) solves,
-    warm-started from ``previous`` when ``settings.warm_start``.
+    warm-started when ``settings.warm_start`` from ``previous``, or, without one, from
+    ``initial`` (node id -> world-to-node rotation, e.g. those stored in a graph file).
     Never raises for a solver error: that is ``status == "failed"`` with the exception text.
     """
     graph = snap.graph
@@ -372,7 +389,8 @@ def solve_snapshot(
     if warning:
         return SolveAttempt(ANCHOR_MISSING, anchor_warning=warning)
     fn = solve_fn if solve_fn is not None else _runner_fn(
-        runner or run_solver, previous if settings.warm_start else None)
+        runner or run_solver, previous if settings.warm_start else None,
+        initial if settings.warm_start else None)
     t0 = time.perf_counter()
     try:
         result = fn(graph, anchor, settings.solver)

@@ -236,6 +236,9 @@ class ReplayReport:
                          if math.isfinite(s.attempt.duration_s))
         lines.append(f"  solves: {len(self.solves)} ({ok} ok, {failed} failed), "
                      f"{solve_time:.2f} s solving")
+        errors = dict.fromkeys(s.attempt.error for s in self.solves
+                               if s.attempt.status == "failed" and s.attempt.error)
+        lines += [f"    failed: {error}" for error in errors]
         if self.final is not None:
             r = self.final
             lines.append(f"  final: {len(r.node_ids)} nodes, {len(r.anchors)} component(s), "
@@ -455,7 +458,7 @@ class Replayer:
                 if msgtype not in EDGE_TYPES:
                     stats.note = "not an edge message type"
                     continue
-                if topic in NOT_BY_DEFAULT or topic == own:
+                if topic in NOT_BY_DEFAULT or topic in (own, DEFAULT_GT_TOPIC):
                     stats.note = "not an edge topic by default (name it in --edge-topics)"
                     continue
             stats.role = "edges"
@@ -738,7 +741,8 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--output-g2o", metavar="FILE", help="write the final orientations as g2o")
     p.add_argument("--ground-truth-topic", default=DEFAULT_GT_TOPIC, metavar="TOPIC",
                    help="TransformStamped/TFMessage world->node ground truth "
-                   "(default %(default)s; '' to ignore)")
+                   "(default %(default)s; '' to ignore; a topic named /ground_truth is "
+                   "never an edge topic unless named in --edge-topics)")
     p.add_argument("--edge-topics", nargs="+", metavar="TOPIC",
                    help="edge topics (default: every TransformStamped, Odometry and TFMessage "
                    "topic except the ground truth, /tf and /tf_static)")

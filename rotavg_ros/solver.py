@@ -65,11 +65,11 @@ def observation_cost(
 
 
 def resolve_device(name: str) -> str:
-    """``auto`` picks CUDA when available; an unavailable CUDA request raises."""
+    """``auto`` picks CUDA when available; an unavailable CUDA request raises ValueError."""
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
     if name.startswith("cuda") and not torch.cuda.is_available():
-        raise RuntimeError(f"device {name!r} requested but CUDA is not available")
+        raise ValueError(f"device {name!r} requested but CUDA is not available here")
     return name
 
 
@@ -78,9 +78,7 @@ class RotationAverager:
 
     def __init__(self, options: SolverOptions | None = None) -> None:
         self.options = options or SolverOptions()
-        for d in self.options.depths:
-            if d < 2 or d % 2:
-                raise ValueError(f"depths must be even and >= 2, got {d}")
+        self.options.validate()
 
     # ------------------------------------------------------------------ public
     def solve(

@@ -6,8 +6,11 @@ Conventions: rotations are world-to-node (``x_node = R_i x_world``); edges carry
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable
+import math
+import re
+from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, field
+from typing import TypeGuard
 
 import numpy as np
 from numpy.typing import NDArray
@@ -96,6 +99,72 @@ class SolverOptions:
     parallel. None: one thread per candidate, as many candidates at once as there are
     CPUs (robust when the CPU is shared; see ``solver._thread_plan``)."""
     progress: ProgressFn | None = field(default=None, repr=False, compare=False)
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first option whose value cannot work.
+
+        Checks ranges only (no device probing: an unavailable CUDA device is reported
+        when the solve starts).
+        """
+        reason = next(self._problems(), None)
+        if reason is not None:
+            raise ValueError(f"invalid solver option: {reason}")
+
+    def _problems(self) -> Iterator[str]:
+        if self.mode not in ("auto", "dense", "sparse"):
+            yield f"mode must be auto, dense or sparse, got {self.mode!r}"
+        for name in ("depths", "sparse_depths"):
+            depths = getattr(self, name)
+            if not depths or any(not _is_int(d) or d < 2 or d % 2 for d in depths):
+                yield f"{name} must be a non-empty list of even integers >= 2, got {depths!r}"
+        for name in ("iterations", "warm_iterations", "reweight_every", "sparse_rounds",
+                     "sparse_inner_iterations", "scalable_width"):
+            if not _is_int(getattr(self, name)) or getattr(self, name) < 1:
+                yield f"{name} must be an integer >= 1, got {getattr(self, name)!r}"
+        for name in ("warmup", "max_full_width_nodes"):
+            if not _is_int(getattr(self, name)) or getattr(self, name) < 0:
+                yield f"{name} must be an integer >= 0, got {getattr(self, name)!r}"
+        for name in ("lr", "warm_lr", "init_scale", "sigma", "huber_factor",
+                     "sparse_outlier_factor"):
+            if not _positive(getattr(self, name)):
+                yield f"{name} must be a finite number > 0, got {getattr(self, name)!r}"
+        if self.sigma_untested is not None and not _positive(self.sigma_untested):
+            yield f"sigma_untested must be None or a finite number > 0, " \
+                  f"got {self.sigma_untested!r}"
+        for name in ("tolerance", "sparse_mean_degree", "sparse_diagonal_weight"):
+            value = getattr(self, name)
+            if not (_is_number(value) and math.isfinite(value) and value >= 0):
+                yield f"{name} must be a finite number >= 0, got {value!r}"
+        if not (_is_number(self.warm_min_known) and 0.0 <= self.warm_min_known <= 1.0):
+            yield f"warm_min_known must be in [0, 1], got {self.warm_min_known!r}"
+        if self.dtype not in ("float32", "float64"):
+            yield f"dtype must be float32 or float64, got {self.dtype!r}"
+        if self.hidden_width is not None and (not _is_int(self.hidden_width)
+                                              or self.hidden_width < 3):
+            yield f"hidden_width must be None or an integer >= 3 (H has rank 3), " \
+                  f"got {self.hidden_width!r}"
+        if self.threads is not None and (not _is_int(self.threads) or self.threads < 1):
+            yield f"threads must be None or an integer >= 1, got {self.threads!r}"
+        if not _DEVICE.fullmatch(str(self.device)):
+            yield f"device must be cpu, cuda, cuda:N or auto, got {self.device!r}"
+        if not _is_int(self.seed) or self.seed < 0:
+            yield f"seed must be an integer >= 0, got {self.seed!r}"
+
+
+_DEVICE = re.compile(r"cpu|auto|cuda(:\d+)?")
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def _is_number(value: object) -> TypeGuard[float]:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, bool)
+
+
+def _positive(value: object) -> bool:
+    return _is_number(value) and math.isfinite(value) and value > 0
 
 
 @dataclass

@@ -226,3 +226,105 @@ def test_usage_error_exits_2() -> None:
     with pytest.raises(SystemExit) as exc:
         main(["solve"])  # missing input and --output
     assert exc.value.code == 2
+
+
+@pytest.mark.parametrize(("flag", "value", "name"), [
+    ("--iterations", "0", "iterations"),
+    ("--iterations", "-5", "iterations"),
+    ("--lr", "-1", "lr"),
+    ("--lr", "nan", "lr"),
+    ("--sigma", "nan", "sigma"),
+    ("--sigma", "-1", "sigma"),
+    ("--hidden-width", "0", "hidden_width"),
+    ("--threads", "0", "threads"),
+    ("--tolerance", "-1", "tolerance"),
+    ("--device", "gpu", "device"),
+    ("--depths", "", "depths"),
+])
+def test_invalid_solver_option_exit_2_before_reading(
+    tmp_path: Path, capsys, flag: str, value: str, name: str
+) -> None:
+    # The input does not exist: the option is rejected before the input is read.
+    out = tmp_path / "o.g2o"
+    assert main(["solve", str(tmp_path / "nope.g2o"), "-o", str(out), flag, value]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("rotavg: error: invalid solver option: ") and name in err, err
+    assert not out.exists()
+
+
+def test_missing_output_directory_exit_2_before_solving(tmp_path: Path, capsys) -> None:
+    g2o = _write_g2o(tmp_path / "graph.g2o", _truth()[:4])
+    out = tmp_path / "no_such_dir" / "o.g2o"
+    assert main(["solve", str(g2o), "-o", str(out), *FAST_ARGS]) == 2
+    err = capsys.readouterr().err
+    assert "output directory" in err and "solved" not in err
+
+
+@pytest.mark.parametrize("content", [b"", b"PK\x03\x04 truncated", b"not an archive\n"])
+def test_unreadable_npz_exit_2_names_the_file(tmp_path: Path, capsys, content: bytes) -> None:
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(content)
+    assert main(["solve", str(bad), "-o", str(tmp_path / "o.g2o")]) == 2
+    assert f"{bad}:" in capsys.readouterr().err
+    est = tmp_path / "est.g2o"
+    est.write_text("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n")
+    assert main(["evaluate", str(est), str(bad)]) == 2
+    assert f"{bad}:" in capsys.readouterr().err
+
+
+def test_truncated_real_npz_exit_2(tmp_path: Path, capsys) -> None:
+    R = _truth()
+    good = tmp_path / "good.npz"
+    e = np.array([(a, b) for a, b in combinations(range(N), 2)])
+    np.savez_compressed(good, edges=e, R_rel=np.einsum("eab,ecb->eac", R[e[:, 0]], R[e[:, 1]]))
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    assert main(["solve", str(cut), "-o", str(tmp_path / "o.g2o")]) == 2
+    assert f"{cut}:" in capsys.readouterr().err
+
+
+def test_non_unit_quaternion_in_g2o_exit_2_with_line(tmp_path: Path, capsys) -> None:
+    src = tmp_path / "q.g2o"
+    src.write_text("EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1\nEDGE_SE3:QUAT 1 2 0 0 0 0.3 0.3 0.3 0.3\n")
+    assert main(["solve", str(src), "-o", str(tmp_path / "o.g2o")]) == 2
+    err = capsys.readouterr().err
+    assert f"{src}:2:" in err and "norm" in err
+
+
+def test_skipped_g2o_tags_are_reported(tmp_path: Path, capsys) -> None:
+    g2o = _write_g2o(tmp_path / "graph.g2o", _truth()[:5])
+    lines = g2o.read_text().splitlines()
+    lines[3] = "EDGE_SE2 1 2 0 0 0 1 0 0 1 0 1"
+    g2o.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "o.g2o"
+    assert main(["solve", str(g2o), "-o", str(out), "-q", *FAST_ARGS]) == 0
+    err = capsys.readouterr().err
+    assert "rotavg: warning:" in err and "EDGE_SE2 x1" in err
+    only = tmp_path / "se2.g2o"
+    only.write_text("EDGE_SE2 1 2 0 0 0 1 0 0 1 0 1\n")
+    assert main(["solve", str(only), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "no EDGE_SE3:QUAT edges" in err and "EDGE_SE2 x1" in err
+
+
+def test_evaluate_warns_when_ids_only_partly_overlap(tmp_path: Path, capsys) -> None:
+    R = _truth()
+    gt = tmp_path / "ref.npz"
+    np.savez(gt, R_ref=R)
+    est = tmp_path / "est.g2o"
+    est.write_text("".join(
+        f"VERTEX_SE3:QUAT {k} 0 0 0 " + " ".join(repr(float(v)) for v in matrix_to_quat(R[k].T))
+        + "\n" for k in range(5)))
+    assert main(["evaluate", str(est), str(gt)]) == 0
+    captured = capsys.readouterr()
+    assert "nodes 5" in captured.out
+    assert "7 ground-truth node(s) have no estimate" in captured.err
+
+
+def test_evaluate_binary_estimate_names_the_file(tmp_path: Path, capsys) -> None:
+    est = tmp_path / "est.g2o"
+    est.write_bytes(b"VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n\xff\xfe\x00")
+    gt = tmp_path / "ref.npz"
+    np.savez(gt, R_ref=_truth())
+    assert main(["evaluate", str(est), str(gt)]) == 2
+    assert f"{est}:2:" in capsys.readouterr().err

@@ -21,9 +21,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TransformStamped
 from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
+from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from ros_fixtures import (
     DOMAIN_ID,
     EdgeClient,
@@ -38,6 +42,7 @@ from visualization_msgs.msg import Marker
 
 from msg_adapters.inputs import DEFAULT_REFERENCE_VARIANCE
 from rotavg_ros.node import PARAMETERS, RotavgNode
+from rotavg_ros.node import main as node_main
 from rotavg_ros.pipeline import default_solve
 from rotavg_ros.so3 import (
     random_rotations,
@@ -262,6 +267,37 @@ def test_restart_continues_from_saved_graph(tmp_path: Path) -> None:
         after = node.last_result
         assert after is not None
         np.testing.assert_allclose(after.rotations, before.rotations, atol=1e-9)
+
+
+def test_first_solve_after_a_restart_is_warm_started(tmp_path: Path) -> None:
+    """The orientations stored in graph_file warm-start the first solve after a restart
+    (dense mode: one depth, the first candidate), until ~/reset drops them."""
+    path = tmp_path / "live_graph.g2o"
+    gt = chain_gt(6, seed=22)
+    overrides = [Parameter("graph_file", value=str(path)), Parameter("mode", value="dense"),
+                 Parameter("depths", value=[4, 2]), Parameter("iterations", value=300),
+                 Parameter("solve_in_subprocess", value=False)]
+    with RosHarness(SingleThreadedExecutor) as h:
+        node, client = start_pair(h, solve_fn=None, overrides=overrides)
+        for a in range(6):
+            for b in range(a + 1, 6):
+                client.send_edge(f"n{a}", f"n{b}", rel(gt, f"n{a}", f"n{b}"))
+        wait_received(node, 15)
+        assert client.solve().success
+        assert node.last_result is not None and set(node.last_result.cost_by_depth) == {2, 4}
+    with RosHarness(SingleThreadedExecutor) as h:
+        node, client = start_pair(h, solve_fn=None, overrides=overrides)
+        assert client.solve().success
+        warm = node.last_result
+        assert warm is not None and set(warm.cost_by_depth) == {4}  # warm: one depth
+        assert wait_until(lambda: len(client.latest_orientations()) == 6)
+        assert aligned_errors_deg(client.latest_orientations(), gt).max() < 0.5
+        assert client.reset().success
+        for a in range(5):
+            client.send_edge(f"n{a}", f"n{a + 1}", rel(gt, f"n{a}", f"n{a + 1}"))
+        wait_received(node, 5)
+        assert client.solve().success
+        assert node.last_result is not None and set(node.last_result.cost_by_depth) == {2, 4}
 
 
 def test_save_graph_without_file_is_refused() -> None:
@@ -563,6 +599,8 @@ def test_parameter_overrides(ros: RosHarness) -> None:  # noqa: F811
     assert client.markers == []
     # Runtime changes are validated; valid ones apply to the next solve.
     assert not node.set_parameters([Parameter("depths", value=[3])])[0].successful
+    assert not node.set_parameters([Parameter("device", value="gpu")])[0].successful
+    assert not node.set_parameters([Parameter("sigma", value=0.0)])[0].successful
     assert not node.set_parameters([Parameter("min_weight", value=1e4)])[0].successful
     assert not node.set_parameters([Parameter("repeat_policy", value="latest")])[0].successful
     assert node.set_parameters([Parameter("iterations", value=12)])[0].successful
@@ -574,7 +612,8 @@ def test_parameter_overrides(ros: RosHarness) -> None:  # noqa: F811
 
 def test_invalid_overrides_are_refused(ros: RosHarness) -> None:  # noqa: F811
     for bad in (Parameter("repeat_policy", value="newest"), Parameter("depths", value=[2, 5]),
-                Parameter("world_frame", value="/map"), Parameter("solve_period", value=0.0)):
+                Parameter("world_frame", value="/map"), Parameter("solve_period", value=0.0),
+                Parameter("device", value="gpu")):
         with pytest.raises(Exception):  # noqa: B017 - ValueError or rclpy's range exception
             RotavgNode(solve_fn=spanning_tree_solve, context=ros.context,
                        namespace=ros.namespace, parameter_overrides=[bad]).destroy_node()
@@ -690,3 +729,53 @@ def test_console_script_answers_over_dds(ros: RosHarness) -> None:  # noqa: F811
             proc.kill()
             output, _ = proc.communicate()
     assert proc.returncode == 0, output
+
+
+def test_late_subscribers_get_orientations_and_periodic_diagnostics(
+    ros: RosHarness,  # noqa: F811
+) -> None:
+    gt = chain_gt(3, seed=16)
+    node, client = start_pair(ros)
+    client.send_edge("n0", "n1", rel(gt, "n0", "n1"))
+    client.send_edge("n1", "n2", rel(gt, "n1", "n2"))
+    wait_received(node, 2)
+    assert client.solve().success
+    # Joins after the solve, with nothing changing afterwards.
+    late = ros.add(Node("late_listener", namespace=ros.namespace, context=ros.context))
+    got: list[TransformStamped] = []
+    diags: list[DiagnosticArray] = []
+    lock = threading.Lock()
+
+    def keep(store: list[Any]) -> Any:
+        def callback(msg: Any) -> None:
+            with lock:
+                store.append(msg)
+        return callback
+
+    late.create_subscription(
+        TransformStamped, f"{node.get_fully_qualified_name()}/orientations", keep(got),
+        QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                   reliability=ReliabilityPolicy.RELIABLE,
+                   durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    late.create_subscription(DiagnosticArray, "/diagnostics", keep(diags), 10)
+    assert wait_until(lambda: {m.child_frame_id for m in got} == {"n0", "n1", "n2"}, 10.0)
+    hw = node.get_fully_qualified_name()
+    assert wait_until(lambda: any(s.hardware_id == hw for a in diags for s in a.status), 5.0)
+    with lock:
+        first = len(diags)
+    assert wait_until(lambda: len(diags) > first, 3.0)  # again, about once a second
+
+
+@pytest.mark.parametrize(("args", "fragment"), [
+    (["-p", "device:=gpu"], "device must be cpu, cuda, cuda:N or auto"),
+    (["-p", "iterations:=0"], "iterations"),
+])
+def test_console_script_refuses_bad_parameters_in_one_line(
+    args: list[str], fragment: str, capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        node_main(["rotavg_node", "--ros-args", *args])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("rotavg_node: error:") and fragment in err
+    assert "Traceback" not in err

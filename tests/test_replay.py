@@ -372,11 +372,24 @@ def test_failing_solver_is_reported(tmp_path: Path) -> None:
     report = replay(bag, solve_fn=broken, output=tmp_path / "out")
     assert report.exit_code == 3 and report.final is None
     assert "solves: 1 (0 ok, 1 failed)" in report.text
+    assert "failed: RuntimeError: out of memory" in report.text  # the reason, not just a count
     (_, diag), = read_bag(tmp_path / "out")["/diagnostics"]
     assert diag.status[0].level == 2 and "out of memory" in diag.status[0].message
     with pytest.raises(ReplayError, match="must not be the input bag"):
         replay(bag, output=bag, overwrite=True)
     assert (bag / "metadata.yaml").is_file()
+
+
+def test_ignored_ground_truth_topic_is_not_taken_for_edges(tmp_path: Path) -> None:
+    gt = ground_truth(5, seed=15)
+    bag = write_bag(tmp_path / "in", chain_messages(gt, [0.1, 0.2, 0.3, 0.4]) + gt_messages(gt))
+    report = replay(bag, gt_topic="")
+    stats = report.topics["/ground_truth"]
+    assert stats.role == "ignored" and stats.used == 0 and not stats.rejected
+    assert "--edge-topics" in stats.note
+    assert report.final_errors is None and report.exit_code == 0
+    named = replay(bag, gt_topic="", edge_topics=["/edges", "/ground_truth"])
+    assert named.topics["/ground_truth"].role == "edges"  # still possible when asked for
 
 
 # ---------------------------------------------------------------------- damaged bags

@@ -368,3 +368,25 @@ def test_warm_solve_recovers_nodes_wrong_in_the_previous_solution() -> None:
         previous[k] = rotation_about_axis(rng.normal(size=3), np.pi * 0.95) @ R[k]
     res = RotationAverager(FAST).solve(g, initial=previous, initial_depth=2)
     assert _errors(res, {k: R[k] for k in range(n)}).max_deg < 3.0
+
+
+def test_default_options_are_valid() -> None:
+    SolverOptions().validate()
+    SolverOptions(hidden_width=3, threads=1, device="cuda:1", sigma_untested=None).validate()
+
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("mode", "fast"), ("depths", ()), ("depths", (2, 3)), ("depths", (0,)),
+    ("sparse_depths", (1,)), ("iterations", 0), ("iterations", 2.5), ("warm_iterations", -1),
+    ("reweight_every", 0), ("warmup", -1), ("lr", 0.0), ("lr", float("nan")),
+    ("warm_lr", -1e-3), ("init_scale", float("inf")), ("sigma", 0.0), ("sigma", -0.2),
+    ("sigma_untested", float("nan")), ("tolerance", -1e-4), ("dtype", "float16"),
+    ("hidden_width", 2), ("threads", 0), ("device", "gpu"), ("device", "cuda:x"),
+    ("seed", -1), ("warm_min_known", 1.5), ("iterations", True),
+])
+def test_invalid_options_are_refused_by_name(field: str, value: Any) -> None:
+    options = replace(SolverOptions(), **{field: value})
+    with pytest.raises(ValueError, match=f"invalid solver option: {field} "):
+        options.validate()
+    with pytest.raises(ValueError, match=field):
+        RotationAverager(options)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 
 import numpy as np
 import pytest
@@ -37,3 +38,30 @@ def test_solve_through_the_child_matches_the_ground_truth() -> None:
         solver.close()
     expected = R @ R[0].T  # anchor 0 at identity
     assert np.allclose(res.rotations, expected, atol=1e-6)
+
+
+def _kill_child(solver: SubprocessSolver) -> None:
+    pid = solver._get_pool().submit(os.getpid).result(timeout=120)
+    os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
+def test_a_dead_child_is_explained_and_replaced() -> None:
+    R = random_rotations(5, np.random.default_rng(1))
+    g = ViewGraph()
+    for a in range(4):
+        g.add_edge(a, a + 1, R[a] @ R[a + 1].T)
+    options = SolverOptions(mode="sparse")
+    solver = SubprocessSolver()
+    try:
+        # Dies before its first solve: what a script without a __main__ guard causes.
+        _kill_child(solver)
+        with pytest.raises(RuntimeError, match=r"before returning its first solve.*__main__"):
+            solver(g, 0, options)
+        assert np.allclose(solver(g, 0, options).rotations, R @ R[0].T, atol=1e-6)
+        _kill_child(solver)  # dies after a solve: killed or out of memory
+        with pytest.raises(RuntimeError, match="died during the solve"):
+            solver(g, 0, options)
+        assert np.allclose(solver(g, 0, options).rotations, R @ R[0].T, atol=1e-6)
+    finally:
+        solver.close()
