@@ -87,8 +87,8 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    help="filter threshold on d_chord(R_ij, R_ij^tree) (default %(default)s)")
     g.add_argument("--device", default=d.device, help="cpu, cuda or auto")
     g.add_argument("--threads", type=int, default=None,
-                   help="torch CPU threads, split among the depth candidates (default: one "
-                   "per candidate, candidates in parallel up to the CPU count)")
+                   help="torch CPU threads, split among the depth candidates (default or 0: "
+                   "one per candidate, candidates in parallel up to the CPU count)")
     g.add_argument("--hidden-width", type=int, default=None,
                    help="width of H's hidden factors (>= 3; default: 3N up to 300 nodes, "
                    "64 above)")
@@ -107,7 +107,8 @@ def options_from_args(args: argparse.Namespace) -> SolverOptions:
     return SolverOptions(
         mode=args.mode, depths=depths, iterations=args.iterations, tolerance=args.tolerance,
         dtype=args.dtype, lr=args.lr, sigma=args.sigma,
-        seed=args.seed, device=args.device, threads=args.threads,
+        seed=args.seed, device=args.device,
+        threads=None if args.threads == 0 else args.threads,  # 0 = default, as the node's
         hidden_width=args.hidden_width, use_filter=not args.no_filter,
         use_support_count=not args.no_support_count,
         explicit_constraint=not args.no_explicit_constraint,
@@ -127,6 +128,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     options.validate()  # before reading a large input
     out_dir = Path(args.output).resolve().parent
+    if Path(args.output).is_dir():
+        raise InputError(f"{args.output}: is a directory; --output names the .g2o file")
     if not out_dir.is_dir():
         raise InputError(f"{args.output}: output directory {out_dir} does not exist")
     graph, _ = load_graph(Path(args.input), gt_only=args.gt_only, warn=_warn)

@@ -2,10 +2,14 @@
 
 File format: standard g2o, readable by any g2o tool, plus comment lines for what g2o lacks.
 
-* ``# rotavg_ros graph v1``, then ``# FRAME <g2o id> <frame id>`` per node: node ids are
+* ``# rotavg_ros graph v2``, then ``# FRAME <g2o id> <frame id>`` per node: node ids are
   frame-id strings, g2o ids are ``0..N-1`` in the graph's node order.
+* ``# SOLVED <g2o id> ...``: the nodes whose vertex holds a solved orientation, and
+  ``# DEPTH <d>``: the DMF depth of that solve (0: unknown).
 * ``VERTEX_SE3:QUAT id 0 0 0 qx qy qz qw``: the last solved orientation (node-to-world,
-  g2o's convention), identity for nodes never solved. Loaded back as a warm start.
+  g2o's convention), identity for nodes never solved (a placeholder, not listed in
+  ``SOLVED``). The solved ones are loaded back as a warm start. Version 1 files (no
+  ``SOLVED`` line) load without orientations: their placeholders cannot be told apart.
 * ``EDGE_SE3:QUAT i j 0 0 0 qx qy qz qw`` + information ``diag(1, 1, 1, w, w, w)``: every raw
   measurement (parallel ones included) in arrival order, ``R_ij ~= R_i R_j^T``, so the repeat
   policy gives the same edges after a reload.
@@ -27,7 +31,8 @@ from rotavg_ros.io_g2o import read_g2o, write_g2o
 from rotavg_ros.view_graph import ViewGraph
 
 FloatArray = NDArray[np.float64]
-MAGIC = "# rotavg_ros graph v1"
+MAGIC = "# rotavg_ros graph v2"
+_MAGIC_V1 = "# rotavg_ros graph v1"
 
 
 @dataclass(frozen=True)
@@ -44,27 +49,34 @@ class StoredGraph:
 
     measurements: list[EdgeMeasurement]
     orientations: dict[str, FloatArray]
+    """World-to-node rotations of the nodes solved when the file was written."""
+    depth: int | None = None
+    """DMF depth of that solve, if known."""
 
 
 def save_graph(
     path: str | os.PathLike[str], graph: ViewGraph,
-    orientations: Mapping[Any, FloatArray] | None = None,
+    orientations: Mapping[Any, FloatArray] | None = None, depth: int | None = None,
 ) -> int:
-    """Write ``graph`` (and the world-to-node ``orientations``, if any) atomically.
+    """Write ``graph`` (and the world-to-node ``orientations`` of the solved nodes, with the
+    ``depth`` of that solve, if any) atomically.
 
     Returns the number of measurements written.
     """
     path = Path(path)
     ids = graph.node_ids
     rot = np.tile(np.eye(3), (len(ids), 1, 1))
+    solved: list[int] = []
     for k, node in enumerate(ids):
         if orientations is not None and node in orientations:
             rot[k] = orientations[node]
+            solved.append(k)
     i, j, R, w = graph.measurement_arrays()
     tmp = path.with_name(path.name + ".tmp")
     write_g2o(tmp, list(range(len(ids))), rot, _Edges(i, j, R, w))
     body = tmp.read_text()
-    header = [MAGIC] + [f"# FRAME {k} {node}" for k, node in enumerate(ids)]
+    header = ([MAGIC] + [f"# FRAME {k} {node}" for k, node in enumerate(ids)]
+              + ["# SOLVED" + "".join(f" {k}" for k in solved), f"# DEPTH {depth or 0}"])
     tmp.write_text("\n".join(header) + "\n" + body)
     os.replace(tmp, path)
     return int(i.size)
@@ -74,14 +86,29 @@ def load_graph(path: str | os.PathLike[str]) -> StoredGraph:
     """Read a file written by :func:`save_graph` (ValueError names the file if it is not)."""
     path = Path(path)
     frames: dict[int, str] = {}
+    solved: set[int] = set()
+    depth: int | None = None
     with path.open() as fh:
         first = fh.readline().rstrip("\n")
-        if first != MAGIC:
+        if first not in (MAGIC, _MAGIC_V1):
             raise ValueError(f"{path}: not a rotavg_ros graph file (first line {first!r})")
         for lineno, line in enumerate(fh, start=2):
-            if not line.startswith("# FRAME "):
+            text = line.rstrip("\n")
+            if text.startswith("# SOLVED"):
+                fields = text.split()[2:]
+                if not all(f.isdigit() for f in fields):
+                    raise ValueError(f"{path}:{lineno}: malformed SOLVED line")
+                solved = {int(f) for f in fields}
+                continue
+            if text.startswith("# DEPTH "):
+                value = text[len("# DEPTH "):].strip()
+                if not value.isdigit():
+                    raise ValueError(f"{path}:{lineno}: malformed DEPTH line")
+                depth = int(value) or None
+                continue
+            if not text.startswith("# FRAME "):
                 break
-            parts = line.rstrip("\n").split(" ", 3)
+            parts = text.split(" ", 3)
             if len(parts) != 4 or not parts[2].isdigit() or not parts[3]:
                 raise ValueError(f"{path}:{lineno}: malformed FRAME line")
             frames[int(parts[2])] = parts[3]
@@ -93,5 +120,6 @@ def load_graph(path: str | os.PathLike[str]) -> StoredGraph:
     i, j, R, w = graph.measurement_arrays()
     measurements = [EdgeMeasurement(str(names[a]), str(names[b]), Rk, float(wk))
                     for a, b, Rk, wk in zip(i, j, R, w, strict=True)]
-    orientations = {frames[int(k)]: v for k, v in g2o.vertex_rotations.items() if int(k) in frames}
-    return StoredGraph(measurements, orientations)
+    orientations = {frames[int(k)]: v for k, v in g2o.vertex_rotations.items()
+                    if int(k) in frames and int(k) in solved}
+    return StoredGraph(measurements, orientations, depth if orientations else None)

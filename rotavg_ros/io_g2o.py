@@ -100,10 +100,13 @@ def _read_lines(path: PathLike) -> list[str]:
     with open(path, "rb") as fh:
         raw = fh.read()
     try:
-        return raw.decode("utf-8").splitlines()
+        return raw.decode("utf-8-sig").splitlines()  # a leading byte-order mark is dropped
     except UnicodeDecodeError as exc:
-        line = raw[:exc.start].count(b"\n") + 1
-        raise G2oFormatError(path, line, "not a UTF-8 text file (binary data?)") from None
+        line = len(raw[:exc.start].decode("utf-8", errors="replace").splitlines()) or 1
+        if raw[:exc.start].endswith((b"\n", b"\r")):
+            line += 1
+        raise G2oFormatError(path, line, "not UTF-8 text (binary data or another "
+                                         "encoding)") from None
 
 
 def _tokenized(lines: Iterable[str]) -> Iterator[tuple[int, list[str]]]:

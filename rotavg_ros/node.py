@@ -109,7 +109,7 @@ import concurrent.futures
 import os
 import sys
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -124,7 +124,7 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import InvalidHandle, InvalidParameterValueException
+from rclpy.exceptions import InvalidHandle, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -158,6 +158,7 @@ from rotavg_ros.pipeline import (
     SolveBookkeeping,
     SolveFn,
     SubprocessSolver,
+    WarmStart,
     diagnostic_name,
     diagnostic_values,
     make_accumulator,
@@ -317,13 +318,14 @@ class RotavgNode(Node):
             and self.get_parameter("solve_in_subprocess").value else None)
         self._acc = make_accumulator(self.get_parameter("repeat_policy").value)
         self._graph_file = str(self.get_parameter("graph_file").value)
-        # Orientations stored in graph_file: the warm start of the first solve after a
-        # restart (then the last result takes over); cleared by ~/reset.
-        self._stored_orientations: Mapping[Any, Any] | None = None
+        # Orientations (and depth) stored in graph_file: the warm start of the first solve
+        # after a restart (then the last result takes over); cleared by ~/reset.
+        self._stored: WarmStart | None = None
         if self._graph_file and os.path.exists(self._graph_file):
             stored = load_graph(self._graph_file)  # a broken file stops the start: say why
             self._acc.add_many(stored.measurements)
-            self._stored_orientations = stored.orientations or None
+            if stored.orientations:
+                self._stored = WarmStart(stored.orientations, stored.depth)
             self.get_logger().info(
                 f"loaded {len(stored.measurements)} measurements and "
                 f"{len(stored.orientations)} orientations from {self._graph_file}")
@@ -360,14 +362,6 @@ class RotavgNode(Node):
             depth=self.get_parameter("qos_depth").value,
             reliability=ReliabilityPolicy.RELIABLE,
         )
-        # Transient local: a subscriber that joins later (and asks for transient-local
-        # durability) still gets the last solve's orientations, as with /tf_static.
-        out_qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=self.get_parameter("orientations_qos_depth").value,
-            reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL,
-        )
         self._sub_tf = self.create_subscription(
             TransformStamped, "~/edges", self._on_transform, in_qos,
             callback_group=self._ingest_group,
@@ -376,9 +370,8 @@ class RotavgNode(Node):
             Odometry, "~/edges_with_covariance", self._on_odometry, in_qos,
             callback_group=self._ingest_group,
         )
-        self._pub_orientations = self.create_publisher(
-            TransformStamped, "~/orientations", out_qos
-        )
+        self._pub_orientations = self._orientations_publisher()
+        self._markers_shown: SolveResult | None = None  # result of the last markers published
         self._pub_markers = self.create_publisher(MarkerArray, "~/markers", QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL))
@@ -404,6 +397,16 @@ class RotavgNode(Node):
             f"{self._sub_odom.topic_name} into {self._pub_orientations.topic_name}"
         )
 
+    def _orientations_publisher(self) -> Any:
+        # Transient local: a subscriber that joins later (and asks for transient-local
+        # durability) still gets the latest orientations, as with /tf_static.
+        return self.create_publisher(TransformStamped, "~/orientations", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=self.get_parameter("orientations_qos_depth").value,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        ))
+
     # ------------------------------------------------------------------ public
     @property
     def accumulator(self) -> EdgeAccumulator:
@@ -427,15 +430,15 @@ class RotavgNode(Node):
 
     def destroy_node(self) -> None:
         """Stop the worker (waits for a running solve), save the graph, destroy the node."""
-        if self._graph_file and self._acc.stats().accepted:
+        with self._sched_lock:
+            self._closing = True
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._graph_file and self._acc.stats().accepted:  # with the newest result
             ok, message = self.save_graph()
             if self.context.ok():
                 (self.get_logger().info if ok else self.get_logger().error)(message)
             else:  # after Ctrl-C / SIGTERM the context is down: /rosout is gone
                 print(f"[{self.get_name()}] {message}", file=sys.stderr, flush=True)
-        with self._sched_lock:
-            self._closing = True
-        self._pool.shutdown(wait=True, cancel_futures=True)
         if self._runner is not None:
             self._runner.close()
         super().destroy_node()
@@ -516,7 +519,18 @@ class RotavgNode(Node):
         with self._sched_lock:
             if self._closing:
                 return
-        self._publish_diagnostics(self.get_clock().now().to_msg())
+        stamp = self.get_clock().now().to_msg()
+        settings = self._settings
+        try:
+            with self._publish_lock:  # a viewer that subscribed after solves left markers out
+                last = self._book.last_result
+                if (settings.publish_markers and last is not None
+                        and last is not self._markers_shown
+                        and self._pub_markers.get_subscription_count() > 0):
+                    self._publish_markers(last, stamp, settings)
+            self._publish_diagnostics(stamp)
+        except InvalidHandle:  # destroyed meanwhile: the node is shutting down
+            pass
 
     def _on_solve_request(
         self, request: Trigger.Request, response: Trigger.Response
@@ -539,7 +553,14 @@ class RotavgNode(Node):
         with self._publish_lock:
             self._acc.reset()
             self._book.reset()
-            self._stored_orientations = None
+            self._stored = None
+            # Late (transient-local) subscribers must not get pre-reset output.
+            self.destroy_publisher(self._pub_orientations)
+            self._pub_orientations = self._orientations_publisher()
+            if self._markers_shown is not None:
+                self._pub_markers.publish(clear_markers(
+                    self._settings.world_frame, self.get_clock().now().to_msg()))
+                self._markers_shown = None
         self.get_logger().info("graph reset")
         response.success = True
         response.message = "graph and counters cleared"
@@ -557,10 +578,14 @@ class RotavgNode(Node):
             return False, "graph_file parameter is empty: nowhere to save"
         snap = self._acc.snapshot()
         last = self._book.last_result
-        orientations = (dict(zip(last.node_ids, last.rotations, strict=True)) if last
-                        else self._stored_orientations)
+        if last is not None:
+            warm: WarmStart | None = WarmStart(
+                dict(zip(last.node_ids, last.rotations, strict=True)), last.depth or None)
+        else:
+            warm = self._stored
         try:
-            count = save_graph(self._graph_file, snap.graph, orientations)
+            count = save_graph(self._graph_file, snap.graph,
+                               warm.rotations if warm else None, warm.depth if warm else None)
         except OSError as exc:
             return False, f"could not write {self._graph_file}: {exc}"
         return True, f"saved {count} measurements to {self._graph_file}"
@@ -606,7 +631,7 @@ class RotavgNode(Node):
             self._last_attempted_version = snap.version
         stamp = self.get_clock().now().to_msg()
         attempt = solve_snapshot(snap, settings, self._solve_fn, self._book.last_result,
-                                 self._runner, self._stored_orientations)
+                                 self._runner, self._stored)
         if attempt.status == SOLVED:
             with self._publish_lock:
                 if self._acc.generation != snap.generation:
@@ -616,7 +641,9 @@ class RotavgNode(Node):
             return SolveOutcome(True, attempt.message)
         self._book.record(attempt, snap.version)
         if attempt.status == NO_EDGES and settings.publish_markers:
-            self._pub_markers.publish(clear_markers(settings.world_frame, stamp))
+            with self._publish_lock:
+                self._pub_markers.publish(clear_markers(settings.world_frame, stamp))
+                self._markers_shown = None
         elif attempt.status == FAILED:
             self.get_logger().error(
                 f"solve failed, keeping the last orientations: {attempt.error}"
@@ -633,11 +660,16 @@ class RotavgNode(Node):
             self._pub_orientations.publish(msg)
         # Markers cost about 1.5 ms per node to build in Python: only for an actual viewer.
         if settings.publish_markers and self._pub_markers.get_subscription_count() > 0:
-            self._pub_markers.publish(orientation_markers(
-                result.node_ids, result.rotations, result.component, result.anchors,
-                settings.world_frame, stamp, spacing=settings.marker_spacing,
-            ))
+            self._publish_markers(result, stamp, settings)
         self._publish_diagnostics(stamp)
+
+    def _publish_markers(self, result: SolveResult, stamp: Any, settings: Settings) -> None:
+        """Under ``_publish_lock``."""
+        self._pub_markers.publish(orientation_markers(
+            result.node_ids, result.rotations, result.component, result.anchors,
+            settings.world_frame, stamp, spacing=settings.marker_spacing,
+        ))
+        self._markers_shown = result
 
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self, stamp: Any, stats: AccumulatorStats | None = None) -> None:
@@ -671,7 +703,7 @@ def main(args: Sequence[str] | None = None) -> None:
     try:
         try:
             node = RotavgNode()
-        except (ValueError, OSError, InvalidParameterValueException) as exc:
+        except (ValueError, OSError, ParameterException) as exc:
             # A refused parameter or an unreadable graph_file: one line, no traceback.
             print(f"rotavg_node: error: {exc}", file=sys.stderr, flush=True)
             sys.exit(2)

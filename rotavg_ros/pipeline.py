@@ -303,17 +303,26 @@ def _init_child(niceness: int) -> None:
         os.nice(niceness)
 
 
+@dataclass(frozen=True)
+class WarmStart:
+    """Where a solve starts: known world-to-node rotations by node id, and the DMF depth
+    that found them (None: the first candidate depth)."""
+
+    rotations: Mapping[Any, FloatArray]
+    depth: int | None = None
+
+
 def _runner_fn(
-    runner: Runner, previous: SolveResult | None,
-    initial: Mapping[Any, FloatArray] | None = None,
+    runner: Runner, previous: SolveResult | None, initial: WarmStart | None = None,
 ) -> SolveFn:
     """A :data:`SolveFn` that calls ``runner``, warm-started from ``previous`` if given,
-    else from ``initial`` rotations (at the first candidate depth) if given."""
-    depth: int | None = None
+    else from ``initial`` if given."""
     if previous is not None:
-        initial = dict(zip(previous.node_ids, previous.rotations, strict=True))
-        depth = previous.depth or None
-    start = dict(initial) if initial else None
+        initial = WarmStart(dict(zip(previous.node_ids, previous.rotations, strict=True)),
+                            previous.depth or None)
+    if initial is None or not initial.rotations:
+        return lambda graph, anchor, options: runner(graph, anchor, options, None, None)
+    start, depth = dict(initial.rotations), initial.depth
     return lambda graph, anchor, options: runner(graph, anchor, options, start, depth)
 
 
@@ -372,14 +381,14 @@ def choose_anchor(graph: ViewGraph, first_node: Hashable | None,
 def solve_snapshot(
     snap: GraphSnapshot, settings: Settings, solve_fn: SolveFn | None = None,
     previous: SolveResult | None = None, runner: Runner | None = None,
-    initial: Mapping[Any, FloatArray] | None = None,
+    initial: WarmStart | None = None,
 ) -> SolveAttempt:
     """Choose the anchor and solve ``snap.graph`` with ``settings.solver``.
 
     ``solve_fn`` (a test hook) replaces the solver outright. Otherwise ``runner`` (default
     :func:`run_solver`, in process; the node passes a :class:`SubprocessSolver`) solves,
     warm-started when ``settings.warm_start`` from ``previous``, or, without one, from
-    ``initial`` (node id -> world-to-node rotation, e.g. those stored in a graph file).
+    ``initial`` (e.g. the orientations and depth stored in a graph file).
     Never raises for a solver error: that is ``status == "failed"`` with the exception text.
     """
     graph = snap.graph

@@ -118,7 +118,7 @@ class SolverOptions:
             if not depths or any(not _is_int(d) or d < 2 or d % 2 for d in depths):
                 yield f"{name} must be a non-empty list of even integers >= 2, got {depths!r}"
         for name in ("iterations", "warm_iterations", "reweight_every", "sparse_rounds",
-                     "sparse_inner_iterations", "scalable_width"):
+                     "sparse_inner_iterations"):
             if not _is_int(getattr(self, name)) or getattr(self, name) < 1:
                 yield f"{name} must be an integer >= 1, got {getattr(self, name)!r}"
         for name in ("warmup", "max_full_width_nodes"):
@@ -143,6 +143,9 @@ class SolverOptions:
                                               or self.hidden_width < 3):
             yield f"hidden_width must be None or an integer >= 3 (H has rank 3), " \
                   f"got {self.hidden_width!r}"
+        if not _is_int(self.scalable_width) or self.scalable_width < 3:
+            yield f"scalable_width must be an integer >= 3 (H has rank 3), " \
+                  f"got {self.scalable_width!r}"
         if self.threads is not None and (not _is_int(self.threads) or self.threads < 1):
             yield f"threads must be None or an integer >= 1, got {self.threads!r}"
         if not _DEVICE.fullmatch(str(self.device)):

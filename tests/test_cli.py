@@ -236,7 +236,7 @@ def test_usage_error_exits_2() -> None:
     ("--sigma", "nan", "sigma"),
     ("--sigma", "-1", "sigma"),
     ("--hidden-width", "0", "hidden_width"),
-    ("--threads", "0", "threads"),
+    ("--threads", "-1", "threads"),
     ("--tolerance", "-1", "tolerance"),
     ("--device", "gpu", "device"),
     ("--depths", "", "depths"),

@@ -22,7 +22,7 @@ def test_round_trip_keeps_frames_order_weights_and_repeats(tmp_path: Path) -> No
     for a, b, w in edges:
         g.add_edge(a, b, R[index[a]] @ R[index[b]].T, w)
     path = tmp_path / "g.g2o"
-    assert save_graph(path, g, {"cam/0": R[1]}) == len(edges)
+    assert save_graph(path, g, {"cam/0": R[1]}, depth=6) == len(edges)
     stored = load_graph(path)
     g2 = ViewGraph()
     for m in stored.measurements:
@@ -31,7 +31,24 @@ def test_round_trip_keeps_frames_order_weights_and_repeats(tmp_path: Path) -> No
     for x, y in zip(g2.measurement_arrays(), g.measurement_arrays(), strict=True):
         np.testing.assert_allclose(x, y, atol=1e-12)
     np.testing.assert_allclose(stored.orientations["cam/0"], R[1], atol=1e-12)
-    np.testing.assert_allclose(stored.orientations["x"], np.eye(3), atol=1e-12)
+    # Only solved nodes come back: the identity placeholders of the others are no warm start.
+    assert set(stored.orientations) == {"cam/0"} and stored.depth == 6
+    save_graph(path, g)  # nothing solved yet
+    assert load_graph(path).orientations == {} and load_graph(path).depth is None
+
+
+def test_version_1_file_loads_without_orientations(tmp_path: Path) -> None:
+    g = ViewGraph()
+    g.add_edge("a", "b", np.eye(3))
+    path = tmp_path / "g.g2o"
+    save_graph(path, g, {"a": np.eye(3), "b": np.eye(3)}, depth=2)
+    lines = [ln for ln in path.read_text().splitlines()
+             if not ln.startswith(("# SOLVED", "# DEPTH"))]
+    lines[0] = "# rotavg_ros graph v1"
+    path.write_text("\n".join(lines) + "\n")
+    stored = load_graph(path)
+    assert len(stored.measurements) == 1
+    assert stored.orientations == {} and stored.depth is None
 
 
 def test_foreign_file_is_refused_with_its_name(tmp_path: Path) -> None:

@@ -284,18 +284,29 @@ def test_first_solve_after_a_restart_is_warm_started(tmp_path: Path) -> None:
                 client.send_edge(f"n{a}", f"n{b}", rel(gt, f"n{a}", f"n{b}"))
         wait_received(node, 15)
         assert client.solve().success
-        assert node.last_result is not None and set(node.last_result.cost_by_depth) == {2, 4}
+        cold = node.last_result
+        assert cold is not None and set(cold.cost_by_depth) == {2, 4}
     with RosHarness(SingleThreadedExecutor) as h:
         node, client = start_pair(h, solve_fn=None, overrides=overrides)
         assert client.solve().success
         warm = node.last_result
-        assert warm is not None and set(warm.cost_by_depth) == {4}  # warm: one depth
+        assert warm is not None and set(warm.cost_by_depth) == {cold.depth}  # warm: that depth
         assert wait_until(lambda: len(client.latest_orientations()) == 6)
         assert aligned_errors_deg(client.latest_orientations(), gt).max() < 0.5
         assert client.reset().success
         for a in range(5):
             client.send_edge(f"n{a}", f"n{a + 1}", rel(gt, f"n{a}", f"n{a + 1}"))
         wait_received(node, 5)
+        assert client.solve().success
+        assert node.last_result is not None and set(node.last_result.cost_by_depth) == {2, 4}
+    # Stopped before any solve: nothing solved is stored, the next start solves cold.
+    path.unlink()
+    with RosHarness(SingleThreadedExecutor) as h:
+        node, client = start_pair(h, solve_fn=None, overrides=overrides)
+        client.send_edge("n0", "n1", rel(gt, "n0", "n1"))
+        wait_received(node, 1)
+    with RosHarness(SingleThreadedExecutor) as h:
+        node, client = start_pair(h, solve_fn=None, overrides=overrides)
         assert client.solve().success
         assert node.last_result is not None and set(node.last_result.cost_by_depth) == {2, 4}
 
@@ -764,11 +775,35 @@ def test_late_subscribers_get_orientations_and_periodic_diagnostics(
     with lock:
         first = len(diags)
     assert wait_until(lambda: len(diags) > first, 3.0)  # again, about once a second
+    # Markers left out of a solve reach a viewer on the next diagnostics tick.
+    assert node.set_parameters([Parameter("publish_markers", value=False)])[0].successful
+    client.send_edge("n2", "n0", rel(gt, "n2", "n0"))
+    wait_received(node, 3)
+    with client.lock:
+        client.markers.clear()
+    assert client.solve().success
+    assert node.set_parameters([Parameter("publish_markers", value=True)])[0].successful
+    assert wait_until(lambda: len(client.markers) == 1, 3.0)
+    # After ~/reset a late transient-local subscriber gets nothing from before the reset.
+    assert client.reset().success
+    after_reset: list[TransformStamped] = []
+    late.create_subscription(
+        TransformStamped, f"{node.get_fully_qualified_name()}/orientations", keep(after_reset),
+        QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                   reliability=ReliabilityPolicy.RELIABLE,
+                   durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    time.sleep(1.0)
+    assert after_reset == []
+    client.send_edge("n0", "n1", rel(gt, "n0", "n1"))
+    wait_received(node, 1)
+    assert client.solve().success
+    assert wait_until(lambda: {m.child_frame_id for m in after_reset} == {"n0", "n1"}, 5.0)
 
 
 @pytest.mark.parametrize(("args", "fragment"), [
     (["-p", "device:=gpu"], "device must be cpu, cuda, cuda:N or auto"),
     (["-p", "iterations:=0"], "iterations"),
+    (["-p", "sigma:=1"], "sigma"),  # an integer for a double parameter
 ])
 def test_console_script_refuses_bad_parameters_in_one_line(
     args: list[str], fragment: str, capsys: pytest.CaptureFixture[str],
