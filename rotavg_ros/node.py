@@ -572,17 +572,16 @@ class RotavgNode(Node):
         response.success, response.message = self.save_graph()
         return response
 
+    def _warm_start(self) -> WarmStart | None:
+        """The last result's orientations, else those loaded from ``graph_file``."""
+        return WarmStart.of(self._book.last_result) or self._stored
+
     def save_graph(self) -> tuple[bool, str]:
         """Write the live graph and the last orientations to ``graph_file``."""
         if not self._graph_file:
             return False, "graph_file parameter is empty: nowhere to save"
         snap = self._acc.snapshot()
-        last = self._book.last_result
-        if last is not None:
-            warm: WarmStart | None = WarmStart(
-                dict(zip(last.node_ids, last.rotations, strict=True)), last.depth or None)
-        else:
-            warm = self._stored
+        warm = self._warm_start()
         try:
             count = save_graph(self._graph_file, snap.graph,
                                warm.rotations if warm else None, warm.depth if warm else None)
@@ -630,8 +629,8 @@ class RotavgNode(Node):
                 return SolveOutcome(True, "graph unchanged")
             self._last_attempted_version = snap.version
         stamp = self.get_clock().now().to_msg()
-        attempt = solve_snapshot(snap, settings, self._solve_fn, self._book.last_result,
-                                 self._runner, self._stored)
+        attempt = solve_snapshot(snap, settings, self._solve_fn, self._warm_start(),
+                                 self._runner)
         if attempt.status == SOLVED:
             with self._publish_lock:
                 if self._acc.generation != snap.generation:

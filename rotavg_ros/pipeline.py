@@ -311,19 +311,21 @@ class WarmStart:
     rotations: Mapping[Any, FloatArray]
     depth: int | None = None
 
+    @staticmethod
+    def of(result: SolveResult | None) -> WarmStart | None:
+        """The warm start a solve's result gives the next solve (None for no result)."""
+        if result is None:
+            return None
+        return WarmStart(dict(zip(result.node_ids, result.rotations, strict=True)),
+                         result.depth or None)
 
-def _runner_fn(
-    runner: Runner, previous: SolveResult | None, initial: WarmStart | None = None,
-) -> SolveFn:
-    """A :data:`SolveFn` that calls ``runner``, warm-started from ``previous`` if given,
-    else from ``initial`` if given."""
-    if previous is not None:
-        initial = WarmStart(dict(zip(previous.node_ids, previous.rotations, strict=True)),
-                            previous.depth or None)
-    if initial is None or not initial.rotations:
+
+def _runner_fn(runner: Runner, warm: WarmStart | None) -> SolveFn:
+    """A :data:`SolveFn` that calls ``runner``, warm-started from ``warm`` if given."""
+    if warm is None or not warm.rotations:
         return lambda graph, anchor, options: runner(graph, anchor, options, None, None)
-    start, depth = dict(initial.rotations), initial.depth
-    return lambda graph, anchor, options: runner(graph, anchor, options, start, depth)
+    return lambda graph, anchor, options: runner(graph, anchor, options, warm.rotations,
+                                                 warm.depth)
 
 
 # ---------------------------------------------------------------------- solving
@@ -380,15 +382,14 @@ def choose_anchor(graph: ViewGraph, first_node: Hashable | None,
 
 def solve_snapshot(
     snap: GraphSnapshot, settings: Settings, solve_fn: SolveFn | None = None,
-    previous: SolveResult | None = None, runner: Runner | None = None,
-    initial: WarmStart | None = None,
+    warm: WarmStart | None = None, runner: Runner | None = None,
 ) -> SolveAttempt:
     """Choose the anchor and solve ``snap.graph`` with ``settings.solver``.
 
     ``solve_fn`` (a test hook) replaces the solver outright. Otherwise ``runner`` (default
     :func:`run_solver`, in process; the node passes a :class:`SubprocessSolver`) solves,
-    warm-started when ``settings.warm_start`` from ``previous``, or, without one, from
-    ``initial`` (e.g. the orientations and depth stored in a graph file).
+    warm-started from ``warm`` when ``settings.warm_start`` (the previous result's, see
+    :meth:`WarmStart.of`, or the orientations and depth stored in a graph file).
     Never raises for a solver error: that is ``status == "failed"`` with the exception text.
     """
     graph = snap.graph
@@ -398,8 +399,7 @@ def solve_snapshot(
     if warning:
         return SolveAttempt(ANCHOR_MISSING, anchor_warning=warning)
     fn = solve_fn if solve_fn is not None else _runner_fn(
-        runner or run_solver, previous if settings.warm_start else None,
-        initial if settings.warm_start else None)
+        runner or run_solver, warm if settings.warm_start else None)
     t0 = time.perf_counter()
     try:
         result = fn(graph, anchor, settings.solver)

@@ -78,6 +78,7 @@ from rotavg_ros.pipeline import (
     SolveAttempt,
     SolveBookkeeping,
     SolveFn,
+    WarmStart,
     diagnostic_name,
     diagnostic_values,
     make_accumulator,
@@ -590,7 +591,8 @@ class Replayer:
     def _solve(self, stamp_ns: int) -> None:
         snap = self.acc.snapshot()
         self.last_attempted_version = snap.version
-        attempt = solve_snapshot(snap, self.settings, self.solve_fn, self.book.last_result)
+        attempt = solve_snapshot(snap, self.settings, self.solve_fn,
+                                 WarmStart.of(self.book.last_result))
         self.book.record(attempt, snap.version)
         record = SolveRecord(len(self.report.solves) + 1, stamp_ns, attempt)
         self.report.solves.append(record)
