@@ -2,15 +2,19 @@
 
 from glob import glob
 
-from setuptools import setup
+from setuptools import find_packages, setup
 
 PACKAGE = "rotavg_ros"
+# The top-level folder msg_adapters/ installs as rotavg_ros.msg_adapters (no generic
+# top-level module in site-packages).
+PACKAGES = [*find_packages(include=[PACKAGE, f"{PACKAGE}.*"]), f"{PACKAGE}.msg_adapters"]
 
 setup(
     name=PACKAGE,
     version="0.1.0",
-    packages=[PACKAGE, "msg_adapters"],
-    package_data={PACKAGE: ["fastdds_profile.xml"]},
+    packages=PACKAGES,
+    package_dir={f"{PACKAGE}.msg_adapters": "msg_adapters"},
+    package_data={f"{PACKAGE}.ros": ["fastdds_profile.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -28,7 +32,7 @@ setup(
     entry_points={
         "console_scripts": [
             "rotavg = rotavg_ros.cli:main",
-            "rotavg_node = rotavg_ros.node:main",
+            "rotavg_node = rotavg_ros.ros.node:main",
         ],
     },
 )

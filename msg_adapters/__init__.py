@@ -1,9 +1,9 @@
 """ROS message adapters for ``rotavg_ros``.
 
-* :mod:`msg_adapters.inputs`: duck-typed ``TransformStamped`` / ``Odometry`` (rclpy or
-  rosbags) to :class:`~rotavg_ros.accumulator.EdgeMeasurement` or
-  :class:`~rotavg_ros.accumulator.Rejection`. Imports no ROS module.
-* :mod:`msg_adapters.outputs`: solve results to rclpy ``TransformStamped`` (node-to-world),
+* :mod:`rotavg_ros.msg_adapters.inputs`: duck-typed ``TransformStamped`` / ``Odometry`` (rclpy or
+  rosbags) to :class:`~rotavg_ros.app.accumulator.EdgeMeasurement` or
+  :class:`~rotavg_ros.app.accumulator.Rejection`. Imports no ROS module.
+* :mod:`rotavg_ros.ros.messages`: solve results to rclpy ``TransformStamped`` (node-to-world),
   ``MarkerArray`` and ``DiagnosticArray``. Imported lazily (it needs the rclpy message
   packages), so ``import msg_adapters`` works in a ROS-free environment.
 
@@ -12,7 +12,7 @@ is exactly the TF rotation of a transform with ``header.frame_id = i`` and
 ``child_frame_id = j``.
 """
 
-from msg_adapters.inputs import (
+from rotavg_ros.msg_adapters.inputs import (
     ADAPTER_REASONS,
     NOTE_KEYS,
     AdapterConfig,

@@ -60,8 +60,8 @@ from typing import Any
 
 import numpy as np
 
-from rotavg_ros.accumulator import EdgeMeasurement, Rejection
-from rotavg_ros.so3 import quat_to_matrix
+from rotavg_ros.core.measurement import EdgeMeasurement, Rejection
+from rotavg_ros.core.so3 import quat_to_matrix
 
 __all__ = [
     "ADAPTER_REASONS",

@@ -26,7 +26,7 @@ What it does
    transport, the node's publication of one message per node and this process's executor).
    If edges were lost, it is measured to the first solve of the whole graph as received.
 6. Accuracy of those orientations against the synthetic ground truth, gauge-aligned with
-   :func:`rotavg_ros.metrics.evaluate`, and the node's CPU time and RSS (``/proc/<pid>``).
+   :func:`rotavg_ros.core.metrics.evaluate`, and the node's CPU time and RSS (``/proc/<pid>``).
 
 Usage (from the repository root)::
 
@@ -59,8 +59,8 @@ import numpy as np
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
-from rotavg_ros.metrics import evaluate  # noqa: E402
-from rotavg_ros.so3 import matrix_to_quat, quat_to_matrix, random_rotations  # noqa: E402
+from rotavg_ros.core.metrics import evaluate  # noqa: E402
+from rotavg_ros.core.so3 import matrix_to_quat, quat_to_matrix, random_rotations  # noqa: E402
 
 NODE_NAME = "rotavg_node"
 DIAG_NAME = f"{NODE_NAME}: rotation averaging"
@@ -711,7 +711,7 @@ def main(argv: list[str] | None = None) -> int:
                 # ---------------------------------------------------- accuracy
                 print()
                 print("== accuracy vs synthetic ground truth (gauge-aligned, "
-                      "rotavg_ros.metrics.evaluate) ==")
+                      "rotavg_ros.core.metrics.evaluate) ==")
                 est = {k: quat_to_matrix(np.asarray(q)).T for k, q in oset.quats.items()}
                 stats = evaluate(est, graph.gt)
                 print(f"nodes compared {stats.num_nodes}/{args.nodes}: mean "

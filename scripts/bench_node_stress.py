@@ -74,7 +74,7 @@ from bench_node_stream import (  # noqa: E402
     wait_node_idle,
 )
 
-from rotavg_ros.so3 import matrix_to_quat  # noqa: E402
+from rotavg_ros.core.so3 import matrix_to_quat  # noqa: E402
 
 
 def descendants(pid: int) -> list[int]:

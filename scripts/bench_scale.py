@@ -22,10 +22,10 @@ import numpy as np
 def _child(n: int, degree: float, seed: int, device: str, q: Any) -> None:
     from bench_warm_start import measure, synthetic_edges
 
-    from rotavg_ros.metrics import evaluate
-    from rotavg_ros.so3 import random_rotations
-    from rotavg_ros.solver import RotationAverager
-    from rotavg_ros.solver_types import SolverOptions
+    from rotavg_ros.core.metrics import evaluate
+    from rotavg_ros.core.so3 import random_rotations
+    from rotavg_ros.core.solver import RotationAverager
+    from rotavg_ros.core.options import SolverOptions
 
     rng = np.random.default_rng(seed)
     R = random_rotations(n, rng)

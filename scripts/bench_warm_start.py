@@ -16,11 +16,12 @@ import time
 
 import numpy as np
 
-from rotavg_ros.metrics import evaluate
-from rotavg_ros.so3 import random_rotations, rotation_about_axis
-from rotavg_ros.solver import RotationAverager
-from rotavg_ros.solver_types import SolveResult, SolverOptions
-from rotavg_ros.view_graph import ViewGraph
+from rotavg_ros.core.metrics import evaluate
+from rotavg_ros.core.so3 import random_rotations, rotation_about_axis
+from rotavg_ros.core.solver import RotationAverager
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.view_graph import ViewGraph
 
 
 def synthetic_edges(n: int, degree: float, rng: np.random.Generator) -> list[tuple[int, int]]:

@@ -23,13 +23,13 @@ import sys
 
 import numpy as np
 
-from rotavg_ros.datasets import Benchmark, load_ellis_island, shared_dir_or_say
-from rotavg_ros.edge_filter import EdgeFilterResult, filter_edges
-from rotavg_ros.metrics import ErrorStats, evaluate
-from rotavg_ros.so3 import geodesic_distance
-from rotavg_ros.solver import RotationAverager, average_rotations
-from rotavg_ros.solver_types import SolverOptions
-from rotavg_ros.view_graph import EdgeArrays
+from benchmarks.datasets import Benchmark, load_ellis_island, shared_dir_or_say
+from rotavg_ros.core.filter.edge_filter import EdgeFilterResult, filter_edges
+from rotavg_ros.core.metrics import ErrorStats, evaluate
+from rotavg_ros.core.so3 import geodesic_distance
+from rotavg_ros.core.solver import RotationAverager, average_rotations
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.view_graph import EdgeArrays
 
 
 def main() -> int:

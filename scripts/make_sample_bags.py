@@ -28,7 +28,7 @@ written with rosbags, no ROS needed):
 
 Every message's log time equals its header stamp (from 1,700,000,000 s, strictly
 increasing). Reads ``../shared`` (or ``$ROTAVG_SHARED``) through
-``rotavg_ros.datasets.find_shared_dir``; bags needing it are skipped with a message when it
+``benchmarks.datasets.find_shared_dir``; bags needing it are skipped with a message when it
 is absent. Usage::
 
     python scripts/make_sample_bags.py            # all three, replacing existing ones
@@ -50,9 +50,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer  # noqa: E402
 
-from rotavg_ros.bag_outputs import TF_MESSAGE, TRANSFORM_STAMPED, MessageFactory  # noqa: E402
-from rotavg_ros.datasets import find_shared_dir, load_ellis_island, load_se_sync  # noqa: E402
-from rotavg_ros.so3 import matrix_to_quat, quat_to_matrix, rotation_about_axis  # noqa: E402
+from rotavg_ros.io.bag_messages import TF_MESSAGE, TRANSFORM_STAMPED, MessageFactory  # noqa: E402
+from benchmarks.datasets import find_shared_dir, load_ellis_island, load_se_sync  # noqa: E402
+from rotavg_ros.core.so3 import matrix_to_quat, quat_to_matrix, rotation_about_axis  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 BAGS = REPO / "bags"

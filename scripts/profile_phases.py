@@ -21,12 +21,12 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from rotavg_ros.datasets import load_ellis_island, load_se_sync, shared_dir_or_say
-from rotavg_ros.dmf import DMFSettings, fit_symmetric
-from rotavg_ros.edge_filter import filter_edges
-from rotavg_ros.metrics import evaluate
-from rotavg_ros.solver import RotationAverager, rotations_from_factor
-from rotavg_ros.solver_types import SolverOptions
+from benchmarks.datasets import load_ellis_island, load_se_sync, shared_dir_or_say
+from rotavg_ros.core.dmf.fit import DMFSettings, fit_symmetric
+from rotavg_ros.core.filter.edge_filter import filter_edges
+from rotavg_ros.core.metrics import evaluate
+from rotavg_ros.core.solver import RotationAverager, rotations_from_factor
+from rotavg_ros.core.options import SolverOptions
 
 
 def _sync(device: str) -> None:

@@ -22,11 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from rotavg_ros.datasets import load_ellis_island, shared_dir_or_say
-from rotavg_ros.edge_filter import filter_edges
-from rotavg_ros.metrics import evaluate
-from rotavg_ros.solver import average_rotations
-from rotavg_ros.solver_types import SolverOptions
+from benchmarks.datasets import load_ellis_island, shared_dir_or_say
+from rotavg_ros.core.filter.edge_filter import filter_edges
+from rotavg_ros.core.metrics import evaluate
+from rotavg_ros.core.solver import average_rotations
+from rotavg_ros.core.options import SolverOptions
 
 SPACE: dict[str, list[Any]] = {
     "sigma": [0.15, 0.2, 0.25, 0.3],

@@ -50,14 +50,15 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
-from rotavg_ros.so3 import (  # noqa: E402
+from rotavg_ros.core.options import SolverOptions  # noqa: E402
+from rotavg_ros.core.result import SolveResult  # noqa: E402
+from rotavg_ros.core.so3 import (  # noqa: E402
     geodesic_distance,
     matrix_to_quat,
     project_to_so3,
     quat_to_matrix,
 )
-from rotavg_ros.solver_types import SolveResult, SolverOptions  # noqa: E402
-from rotavg_ros.view_graph import ViewGraph  # noqa: E402
+from rotavg_ros.core.view_graph import ViewGraph  # noqa: E402
 
 _NS_COUNTER = itertools.count()
 

@@ -7,14 +7,14 @@ import threading
 
 import numpy as np
 
-from rotavg_ros.accumulator import (
+from rotavg_ros.app.accumulator import (
     INVALID_MEASUREMENT,
     EdgeAccumulator,
     EdgeMeasurement,
     Rejection,
 )
-from rotavg_ros.so3 import random_rotations
-from rotavg_ros.view_graph import RepeatPolicy, ViewGraph
+from rotavg_ros.core.so3 import random_rotations
+from rotavg_ros.core.view_graph import RepeatPolicy, ViewGraph
 
 
 def edge(i: str, j: str, R: np.ndarray | None = None, w: float = 1.0,

@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from rotavg_ros.adam import Adam
-from rotavg_ros.step_graph import StepGraph
+from rotavg_ros.core.optim.adam import Adam
+from rotavg_ros.core.optim.step_graph import StepGraph
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 

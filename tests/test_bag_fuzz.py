@@ -45,8 +45,9 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from test_replay import replay, write_mcap
 
 from rotavg_ros import cli
-from rotavg_ros.bag_reader import BagError, DecodeError, open_bag
-from rotavg_ros.replay import EXIT_INPUT, EXIT_NOTHING_USABLE, EXIT_OK, ReplayError
+from rotavg_ros.errors import InputError
+from rotavg_ros.io.bag_reader import BagError, DecodeError, open_bag
+from rotavg_ros.replay import EXIT_INPUT, EXIT_NOTHING_USABLE, EXIT_OK
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "bags" / "smallgrid3d_odom"
@@ -204,7 +205,7 @@ def read_all(lay: Layout, bag: Path, bound: int) -> Outcome:
 def check_replay(lay: Layout, bag: Path, outcome: Outcome) -> None:
     """``rotavg replay`` ends normally, uses every recovered edge and shows the problems."""
     if outcome.error is not None:
-        with pytest.raises(ReplayError, match="no MCAP magic|not a rosbag2"):
+        with pytest.raises(InputError, match="no MCAP magic|not a rosbag2"):
             replay(bag)
         return
     assert outcome.read is not None and outcome.problems is not None

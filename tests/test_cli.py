@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from rotavg_ros.cli import main
-from rotavg_ros.so3 import geodesic_distance, matrix_to_quat, quat_to_matrix, random_rotations
+from rotavg_ros.core.so3 import geodesic_distance, matrix_to_quat, quat_to_matrix, random_rotations
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 

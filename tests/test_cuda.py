@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 import torch
 
-from rotavg_ros.dmf import DMFSettings, fit_symmetric
-from rotavg_ros.metrics import evaluate
-from rotavg_ros.so3 import random_rotations, rotation_about_axis
-from rotavg_ros.solver import RotationAverager, average_rotations, rotations_from_factor
-from rotavg_ros.solver_types import SolverOptions
-from rotavg_ros.step_graph import StepGraph
-from rotavg_ros.view_graph import ViewGraph
+from rotavg_ros.core.dmf.fit import DMFSettings, fit_symmetric
+from rotavg_ros.core.metrics import evaluate
+from rotavg_ros.core.optim.step_graph import StepGraph
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.so3 import random_rotations, rotation_about_axis
+from rotavg_ros.core.solver import RotationAverager, average_rotations, rotations_from_factor
+from rotavg_ros.core.view_graph import ViewGraph
 
 pytestmark = pytest.mark.skipif(
     not torch.cuda.is_available(),
@@ -161,7 +161,7 @@ def test_cuda_graphs_and_parallel_candidates_match_eager_launches() -> None:
 
 def test_node_solver_child_solves_on_cuda() -> None:
     """The node's spawned solver process, cold and then warm-started, on the GPU."""
-    from rotavg_ros.pipeline import SubprocessSolver
+    from rotavg_ros.app.solver_process import SubprocessSolver
 
     g, R = _graph(50, 0.3, 1.0, 0.1, seed=8)
     solver = SubprocessSolver(niceness=0)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from rotavg_ros.dmf import DMFSettings, factor_shapes, fit_symmetric
-from rotavg_ros.factor_chain import FactorChain
-from rotavg_ros.so3 import random_rotations
-from rotavg_ros.solver import rotations_from_factor
+from rotavg_ros.core.dmf.fit import DMFSettings, factor_shapes, fit_symmetric
+from rotavg_ros.core.optim.factor_chain import FactorChain
+from rotavg_ros.core.so3 import random_rotations
+from rotavg_ros.core.solver import rotations_from_factor
 
 
 @pytest.mark.parametrize("depth", [2, 4, 6, 8])

@@ -7,9 +7,9 @@ from itertools import combinations
 import numpy as np
 import pytest
 
-from rotavg_ros.edge_filter import filter_edges, loop_statistics, tree_rotations
-from rotavg_ros.so3 import chordal_distance, random_rotations, rotation_about_axis
-from rotavg_ros.triangles import enumerate_triangles
+from rotavg_ros.core.filter.edge_filter import filter_edges, loop_statistics, tree_rotations
+from rotavg_ros.core.filter.triangles import enumerate_triangles
+from rotavg_ros.core.so3 import chordal_distance, random_rotations, rotation_about_axis
 
 
 def _random_edges(n: int, p: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,4 @@
-"""Round trip of the live-graph file (rotavg_ros.graph_store)."""
+"""Round trip of the live-graph file (rotavg_ros.io.graph_store)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rotavg_ros.graph_store import load_graph, save_graph
-from rotavg_ros.so3 import random_rotations
-from rotavg_ros.view_graph import ViewGraph
+from rotavg_ros.core.so3 import random_rotations
+from rotavg_ros.core.view_graph import ViewGraph
+from rotavg_ros.io.graph_store import load_graph, save_graph
 
 
 def test_round_trip_keeps_frames_order_weights_and_repeats(tmp_path: Path) -> None:

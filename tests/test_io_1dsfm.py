@@ -6,13 +6,13 @@ from typing import cast
 import numpy as np
 import pytest
 
-from rotavg_ros.io_1dsfm import (
+from rotavg_ros.core.so3 import geodesic_distance, random_rotations
+from rotavg_ros.io.onedsfm import (
     DatasetFormatError,
     read_1dsfm_egs,
     read_1dsfm_npz,
     read_rotations_npz,
 )
-from rotavg_ros.so3 import geodesic_distance, random_rotations
 
 
 def _ellis(shared_dir: Path) -> Path:

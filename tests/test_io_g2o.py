@@ -5,9 +5,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rotavg_ros.io_g2o import G2oFormatError, read_g2o, read_g2o_vertices, write_g2o
-from rotavg_ros.so3 import geodesic_distance, quat_to_matrix, random_rotations
-from rotavg_ros.view_graph import EdgeArrays
+from rotavg_ros.core.so3 import geodesic_distance, quat_to_matrix, random_rotations
+from rotavg_ros.core.view_graph import EdgeArrays
+from rotavg_ros.io.g2o import G2oFormatError, read_g2o, read_g2o_vertices, write_g2o
 
 INFO = "100 0 0 0 0 0 100 0 0 0 0 100 0 0 0 {a} 0 0 {b} 0 {c}"
 FIXTURE = "\n".join([

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from rotavg_ros.lbfgs import minimize_lbfgs
+from rotavg_ros.core.optim.lbfgs import minimize_lbfgs
 
 
 def test_ill_conditioned_quadratic_reaches_its_minimum() -> None:

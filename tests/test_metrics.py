@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rotavg_ros.metrics import align_gauge, angular_errors_deg, evaluate
-from rotavg_ros.so3 import random_rotations, rotation_about_axis
+from rotavg_ros.core.metrics import align_gauge, angular_errors_deg, evaluate
+from rotavg_ros.core.so3 import random_rotations, rotation_about_axis
 
 
 def test_recovers_right_gauge_noise_free() -> None:

@@ -15,9 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from nav_msgs.msg import Odometry
 from rosbags.typesys import Stores, get_typestore
-from visualization_msgs.msg import Marker
-
-from msg_adapters.inputs import (
+from rotavg_ros.msg_adapters.inputs import (
     ADAPTER_REASONS,
     CLAMPED_WEIGHT,
     DEFAULT_REFERENCE_VARIANCE,
@@ -30,7 +28,10 @@ from msg_adapters.inputs import (
     edge_from_transform,
     rotation_weight_from_covariance,
 )
-from msg_adapters.outputs import (
+from visualization_msgs.msg import Marker
+
+from rotavg_ros.core.so3 import matrix_to_quat, quat_to_matrix, random_rotations
+from rotavg_ros.ros.messages import (
     NS_AXES,
     NS_DETACHED_AXES,
     NS_DETACHED_LABELS,
@@ -43,7 +44,6 @@ from msg_adapters.outputs import (
     orientation_markers,
     orientation_transforms,
 )
-from rotavg_ros.so3 import matrix_to_quat, quat_to_matrix, random_rotations
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 REF = DEFAULT_REFERENCE_VARIANCE

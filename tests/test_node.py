@@ -37,19 +37,20 @@ from ros_fixtures import (
     spanning_tree_solve,
     wait_until,
 )
+from rotavg_ros.msg_adapters.inputs import DEFAULT_REFERENCE_VARIANCE
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
-from msg_adapters.inputs import DEFAULT_REFERENCE_VARIANCE
-from rotavg_ros.node import PARAMETERS, RotavgNode
-from rotavg_ros.node import main as node_main
-from rotavg_ros.pipeline import default_solve
-from rotavg_ros.so3 import (
+from rotavg_ros.app.session import default_solve
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.so3 import (
     random_rotations,
     rotation_about_axis,
 )
-from rotavg_ros.solver_types import SolveResult, SolverOptions
-from rotavg_ros.view_graph import ViewGraph
+from rotavg_ros.core.view_graph import ViewGraph
+from rotavg_ros.ros.node import PARAMETERS, RotavgNode
+from rotavg_ros.ros.node import main as node_main
 
 REPO = Path(__file__).resolve().parents[1]
 EXECUTORS: dict[str, Callable[..., Executor]] = {
@@ -703,7 +704,7 @@ def test_params_file_via_cli_args(ros: RosHarness, tmp_path: Path) -> None:  # n
 # ---------------------------------------------------------------------- separate process
 def test_console_script_answers_over_dds(ros: RosHarness) -> None:  # noqa: F811
     exe = shutil.which("rotavg_node", path=str(Path(sys.executable).parent))
-    cmd = [exe] if exe else [sys.executable, "-m", "rotavg_ros.node"]
+    cmd = [exe] if exe else [sys.executable, "-m", "rotavg_ros.ros.node"]
     name = "rotavg_proc"
     cmd += ["--ros-args", "-r", f"__node:={name}", "-r", f"__ns:={ros.namespace}",
             "-p", "solve_period:=0.2", "-p", "iterations:=300", "-p", "depths:=[2, 4]",

@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rotavg_ros import peers
-from rotavg_ros.metrics import evaluate
-from rotavg_ros.so3 import random_rotations
+from benchmarks import peers
+from rotavg_ros.core.metrics import evaluate
+from rotavg_ros.core.so3 import random_rotations
 
 
 def _exact_graph(n: int = 25, seed: int = 3):

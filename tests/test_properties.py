@@ -16,20 +16,25 @@ from geometry_msgs.msg import TransformStamped
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from rosbags.typesys import Stores, get_typestore
-
-from msg_adapters.inputs import (
+from rotavg_ros.msg_adapters.inputs import (
     ADAPTER_REASONS,
     AdapterConfig,
     EdgeMeasurement,
     Rejection,
     edge_from_transform,
 )
-from rotavg_ros.accumulator import EdgeAccumulator
-from rotavg_ros.metrics import align_gauge, angular_errors_deg
-from rotavg_ros.so3 import geodesic_distance, quat_to_matrix, random_rotations, rotation_about_axis
-from rotavg_ros.solver import RotationAverager
-from rotavg_ros.solver_types import SolverOptions
-from rotavg_ros.view_graph import ViewGraph
+
+from rotavg_ros.app.accumulator import EdgeAccumulator
+from rotavg_ros.core.metrics import align_gauge, angular_errors_deg
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.so3 import (
+    geodesic_distance,
+    quat_to_matrix,
+    random_rotations,
+    rotation_about_axis,
+)
+from rotavg_ros.core.solver import RotationAverager
+from rotavg_ros.core.view_graph import ViewGraph
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 T = TYPESTORE.types

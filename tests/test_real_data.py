@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rotavg_ros.datasets import Benchmark, load_ellis_island, load_se_sync
-from rotavg_ros.metrics import evaluate
-from rotavg_ros.solver import RotationAverager
-from rotavg_ros.solver_types import SolverOptions
+from benchmarks.datasets import Benchmark, load_ellis_island, load_se_sync
+from rotavg_ros.core.metrics import evaluate
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.solver import RotationAverager
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 

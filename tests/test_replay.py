@@ -30,27 +30,20 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from rotavg_ros import cli
-from rotavg_ros.bag_outputs import TRANSFORM_STAMPED, MessageFactory
-from rotavg_ros.io_g2o import read_g2o_vertices
-from rotavg_ros.pipeline import default_solve, settings_from_parameters
-from rotavg_ros.replay import (
-    EXIT_INPUT,
-    EXIT_NOTHING_USABLE,
-    EXIT_OK,
-    ODOMETRY,
-    ProgressBar,
-    ReplayConfig,
-    ReplayError,
-    g2o_id_mapping,
-    run_replay,
-    write_g2o_with_mapping,
-)
-from rotavg_ros.so3 import (
+from rotavg_ros.app.parameters import settings_from_parameters
+from rotavg_ros.app.session import default_solve
+from rotavg_ros.cli.progress import ProgressBar
+from rotavg_ros.core.so3 import (
     matrix_to_quat,
     quat_to_matrix,
     random_rotations,
     rotation_about_axis,
 )
+from rotavg_ros.errors import InputError
+from rotavg_ros.io.bag_messages import TRANSFORM_STAMPED, MessageFactory
+from rotavg_ros.io.g2o import g2o_id_mapping, read_g2o_vertices, write_g2o_with_mapping
+from rotavg_ros.replay import EXIT_INPUT, EXIT_NOTHING_USABLE, EXIT_OK, ReplayConfig, run_replay
+from rotavg_ros.replay.config import ODOMETRY
 
 REPO = Path(__file__).resolve().parents[1]
 T0 = 1_000 * 1_000_000_000
@@ -325,7 +318,7 @@ def test_g2o_id_mapping(tmp_path: Path) -> None:
     for names in (["cam_007", "cam_8"], ["a1", "b2"], ["x", "y"], ["c1", "c01"]):
         ids, how = g2o_id_mapping(names)
         assert ids == list(range(len(names))) and how.startswith("sequential"), names
-    from rotavg_ros.solver_types import SolveResult
+    from rotavg_ros.core.result import SolveResult
 
     rots = random_rotations(3, np.random.default_rng(0))
     result = SolveResult(["left", "right", "up"], rots, np.zeros(3, np.int64), ["left"], 0,
@@ -375,7 +368,7 @@ def test_failing_solver_is_reported(tmp_path: Path) -> None:
     assert "failed: RuntimeError: out of memory" in report.text  # the reason, not just a count
     (_, diag), = read_bag(tmp_path / "out")["/diagnostics"]
     assert diag.status[0].level == 2 and "out of memory" in diag.status[0].message
-    with pytest.raises(ReplayError, match="must not be the input bag"):
+    with pytest.raises(InputError, match="must not be the input bag"):
         replay(bag, output=bag, overwrite=True)
     assert (bag / "metadata.yaml").is_file()
 
@@ -488,11 +481,11 @@ def test_unknown_types_and_malformed_messages_are_skipped(tmp_path: Path) -> Non
 def test_unreadable_inputs(tmp_path: Path) -> None:
     not_a_bag = tmp_path / "notes.mcap"
     not_a_bag.write_text("hello, not an mcap file\n" * 10)
-    with pytest.raises(ReplayError, match="notes.mcap"):
+    with pytest.raises(InputError, match="notes.mcap"):
         replay(not_a_bag)
     empty_dir = tmp_path / "empty"
     empty_dir.mkdir()
-    with pytest.raises(ReplayError, match="no .mcap file"):
+    with pytest.raises(InputError, match="no .mcap file"):
         replay(empty_dir)
     # a bag without a single usable message: truncated inside its only chunk
     gt = ground_truth(5, seed=10)
@@ -578,8 +571,8 @@ def test_replay_equals_the_live_node(tmp_path: Path) -> None:
     from rclpy.serialization import deserialize_message
     from ros_fixtures import EdgeClient
 
-    from rotavg_ros.bag_reader import open_bag
-    from rotavg_ros.node import RotavgNode
+    from rotavg_ros.io.bag_reader import open_bag
+    from rotavg_ros.ros.node import RotavgNode
 
     gt = ground_truth(16, seed=12)
     msgs = mixed_bag_messages(gt, seed=13, noise_deg=2.0, outliers=0.1, tf_message=False)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rotavg_ros.so3 import (
+from rotavg_ros.core.so3 import (
     angle_from_chord,
     chord_from_angle,
     chordal_distance,

@@ -10,11 +10,12 @@ from typing import Any, cast
 import numpy as np
 import pytest
 
-from rotavg_ros.metrics import ErrorStats, evaluate
-from rotavg_ros.so3 import geodesic_distance, random_rotations, rotation_about_axis
-from rotavg_ros.solver import RotationAverager, average_rotations, warm_start_rotations
-from rotavg_ros.solver_types import SolveResult, SolverOptions
-from rotavg_ros.view_graph import ViewGraph
+from rotavg_ros.core.metrics import ErrorStats, evaluate
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.so3 import geodesic_distance, random_rotations, rotation_about_axis
+from rotavg_ros.core.solver import RotationAverager, average_rotations, warm_start_rotations
+from rotavg_ros.core.view_graph import ViewGraph
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 

@@ -8,10 +8,10 @@ import signal
 import numpy as np
 import pytest
 
-from rotavg_ros.pipeline import SubprocessSolver
-from rotavg_ros.so3 import random_rotations
-from rotavg_ros.solver_types import SolverOptions
-from rotavg_ros.view_graph import ViewGraph
+from rotavg_ros.app.solver_process import SubprocessSolver
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.so3 import random_rotations
+from rotavg_ros.core.view_graph import ViewGraph
 
 
 @pytest.mark.skipif(not hasattr(os, "nice"), reason="os.nice is POSIX only")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rotavg_ros.so3 import geodesic_distance, random_rotations, rotation_about_axis
-from rotavg_ros.view_graph import RepeatPolicy, ViewGraph
+from rotavg_ros.core.so3 import geodesic_distance, random_rotations, rotation_about_axis
+from rotavg_ros.core.view_graph import RepeatPolicy, ViewGraph
 
 
 def _rot(seed: int) -> np.ndarray:

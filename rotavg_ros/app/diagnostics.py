@@ -1,0 +1,108 @@
+"""The node's ``/diagnostics`` status: level, message and key/values from its counters.
+
+Message-free: the builders in ``rotavg_ros.msg_adapters.outputs`` turn these into a
+``diagnostic_msgs/DiagnosticStatus``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from rotavg_ros.app.accumulator import AccumulatorStats
+from rotavg_ros.app.parameters import Settings
+from rotavg_ros.app.session import SolveBookkeeping
+from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.types import FloatArray
+from rotavg_ros.msg_adapters.outputs import Level
+
+MAX_DETACHED_LISTED = 20
+
+
+def diagnostic_name(node_name: str) -> str:
+    return f"{node_name}: rotation averaging"
+
+
+def inlier_residuals_deg(result: SolveResult) -> FloatArray:
+    return np.asarray(result.residuals_deg)[np.asarray(result.edge_inlier, bool)]
+
+
+def diagnostic_values(
+    stats: AccumulatorStats, book: SolveBookkeeping, settings: Settings
+) -> tuple[Level, str, dict[str, Any]]:
+    """``(level, message, key/values)`` of the node's ``DiagnosticStatus``."""
+    result = book.last_result
+    values: dict[str, Any] = {
+        "nodes": stats.num_nodes,
+        "measurements": stats.num_measurements,
+        "edges_received": stats.received,
+        "edges_accepted": stats.accepted,
+        "edges_rejected": stats.num_rejected,
+    }
+    values.update(stats.rejected)
+    values.update(stats.notes)
+    problems: list[str] = []
+    level = Level.OK
+    if result is not None:
+        inlier = inlier_residuals_deg(result)
+        median = float(np.median(inlier)) if inlier.size else math.nan
+        num_components = len(result.anchors)
+        detached = describe_detached(result)
+        values.update({
+            "solved_nodes": len(result.node_ids),
+            "solved_edges": int(np.asarray(result.residuals_deg).size),
+            "anchor": str(result.anchors[0]) if result.anchors else "",
+            "components": num_components,
+            "detached_components": detached or "none",
+            "filtered_outliers": result.num_filtered,
+            "depth": result.depth,
+            "residual_median_deg": median,
+            "residual_mean_deg": float(np.mean(inlier)) if inlier.size else math.nan,
+            "residual_max_deg": float(np.max(inlier)) if inlier.size else math.nan,
+        })
+        if num_components > 1:
+            level = Level.WARN
+            problems.append(f"{num_components - 1} component(s) not connected to the anchor")
+        if math.isfinite(median) and median > settings.residual_warn_deg:
+            level = Level.WARN
+            problems.append(
+                f"median residual {median:.2f} deg > {settings.residual_warn_deg:g} deg"
+            )
+    values.update({
+        "last_solve_duration_s": book.last_duration_s,
+        "graph_version": stats.version,
+        "solved_version": book.last_solved_version,
+        "solves_completed": book.solves_ok,
+        "solves_failed": book.solves_failed,
+        "timer_ticks_skipped_busy": book.skipped_busy,
+        "last_error": book.last_error or "none",
+    })
+    if book.anchor_warning:
+        level = max(level, Level.WARN)
+        problems.insert(0, book.anchor_warning)
+    if book.last_error:
+        level = Level.ERROR
+        problems.insert(0, f"last solve failed ({book.last_error}); keeping last result")
+    if problems:
+        message = "; ".join(problems)
+    elif result is None:
+        message = "waiting for edges"
+    else:
+        message = f"{len(result.node_ids)} nodes solved"
+    return level, message, values
+
+
+def describe_detached(result: SolveResult) -> str:
+    """``"anchor_a (5 nodes), anchor_b (2 nodes)"`` for components other than 0."""
+    component = np.asarray(result.component)
+    sizes = np.bincount(component, minlength=len(result.anchors))
+    parts = [
+        f"{result.anchors[c]} ({int(sizes[c])} nodes)"
+        for c in range(1, min(len(result.anchors), MAX_DETACHED_LISTED + 1))
+    ]
+    if len(result.anchors) - 1 > MAX_DETACHED_LISTED:
+        parts.append(f"... {len(result.anchors) - 1 - MAX_DETACHED_LISTED} more")
+    return ", ".join(parts)
+

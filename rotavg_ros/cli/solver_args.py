@@ -1,0 +1,63 @@
+"""The solver's command-line flags, shared by every command that solves."""
+
+from __future__ import annotations
+
+import argparse
+
+from rotavg_ros.cli.output import say
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.errors import InputError
+
+
+def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
+    """Solver knobs shared by every command that solves."""
+    d = SolverOptions()
+    g = parser.add_argument_group("solver")
+    g.add_argument("--mode", default=d.mode, choices=("auto", "dense", "sparse"),
+                   help="dense: the paper's DMF; sparse: chordal start + Huber + L-BFGS for "
+                   "chain-like SLAM graphs; auto: by mean degree (default %(default)s)")
+    g.add_argument("--seed", type=int, default=d.seed,
+                   help="random seed; a seed gives bitwise-equal results on the CPU "
+                   "(default %(default)s)")
+    g.add_argument("--depths", default=",".join(map(str, d.depths)),
+                   help="candidate depths, comma separated (default %(default)s)")
+    g.add_argument("--iterations", type=int, default=d.iterations,
+                   help="dense mode: Adam iterations at most (default %(default)s)")
+    g.add_argument("--tolerance", type=float, default=d.tolerance,
+                   help="dense mode early stopping: relative change of H per 25 iterations "
+                   "(0 = off; default %(default)s)")
+    g.add_argument("--dtype", default=d.dtype, choices=("float32", "float64"),
+                   help="dense mode: precision of the Adam fit (default %(default)s)")
+    g.add_argument("--lr", type=float, default=d.lr,
+                   help="dense mode: initial Adam step size, cosine decay (default %(default)s)")
+    g.add_argument("--sigma", type=float, default=d.sigma,
+                   help="filter threshold on d_chord(R_ij, R_ij^tree) (default %(default)s)")
+    g.add_argument("--device", default=d.device, help="cpu, cuda or auto")
+    g.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads, split among the depth candidates (default or 0: "
+                   "one per candidate, candidates in parallel up to the CPU count)")
+    g.add_argument("--hidden-width", type=int, default=None,
+                   help="width of H's hidden factors (>= 3; default: 3N up to 300 nodes, "
+                   "64 above)")
+    g.add_argument("--no-filter", action="store_true", help="ablation (a)")
+    g.add_argument("--no-support-count", action="store_true", help="ablation (b)")
+    g.add_argument("--no-explicit-constraint", action="store_true", help="ablation (c)")
+    g.add_argument("--no-reweighting", action="store_true", help="ablation (d)")
+
+
+def options_from_args(args: argparse.Namespace) -> SolverOptions:
+    try:
+        depths = tuple(int(x) for x in str(args.depths).split(",") if x.strip())
+    except ValueError as exc:
+        raise InputError(f"--depths: expected comma-separated integers: {args.depths!r}") from exc
+    progress = None if getattr(args, "quiet", False) else say
+    return SolverOptions(
+        mode=args.mode, depths=depths, iterations=args.iterations, tolerance=args.tolerance,
+        dtype=args.dtype, lr=args.lr, sigma=args.sigma,
+        seed=args.seed, device=args.device,
+        threads=None if args.threads == 0 else args.threads,  # 0 = default, as the node's
+        hidden_width=args.hidden_width, use_filter=not args.no_filter,
+        use_support_count=not args.no_support_count,
+        explicit_constraint=not args.no_explicit_constraint,
+        reweighting=not args.no_reweighting, progress=progress,
+    )

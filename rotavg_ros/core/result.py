@@ -1,0 +1,37 @@
+"""What the rotation averager returns.
+
+Conventions: rotations are world-to-node (``x_node = R_i x_world``); edges carry
+``R_ij ~= R_i R_j^T``. The anchor node of each connected component gets identity.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable
+from dataclasses import dataclass, field
+
+from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
+
+
+@dataclass
+class SolveResult:
+    """Absolute rotations for every node of the graph that was solved."""
+
+    node_ids: list[Hashable]
+    rotations: FloatArray
+    """(N, 3, 3) world-to-node rotations; each component's anchor is identity."""
+    component: IntArray
+    """(N,) component label; 0 is the anchor's component."""
+    anchors: list[Hashable]
+    """Anchor node id of each component, by label."""
+    depth: int
+    """Depth chosen for the largest component (0 when nothing was optimized)."""
+    residuals_deg: FloatArray
+    """(E,) angular residual of every consolidated input edge against the solution."""
+    edge_inlier: BoolArray
+    """(E,) False for edges removed by the filter."""
+    num_filtered: int
+    cost_by_depth: dict[int, float]
+    duration_s: float
+    iterations_by_depth: dict[int, int] = field(default_factory=dict)
+    """Iterations each depth's fit ran (largest component; dense mode: at most
+    ``iterations``, fewer when stopped early; 0 for the L-BFGS fit of sparse mode)."""

@@ -1,0 +1,394 @@
+"""Filtered-DMF rotation averager: edge filter, DMF per candidate depth, projection.
+
+One estimator, one options struct (:class:`~rotavg_ros.core.options.SolverOptions`).
+Input is a :class:`~rotavg_ros.core.view_graph.ViewGraph` (or plain arrays through
+:func:`average_rotations`). Conventions: ``R_i`` world-to-node, edges ``R_ij ~= R_i R_j^T``;
+the output gives every connected component its own gauge, with its anchor at identity.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Hashable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from rotavg_ros.core.chordal_init import chordal_rotations
+from rotavg_ros.core.dmf.fit import (
+    DMFFit,
+    DMFSettings,
+    fit_symmetric,
+    fit_symmetric_lbfgs,
+    fit_vanilla,
+)
+from rotavg_ros.core.filter.edge_filter import filter_edges
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.so3 import chordal_distance, geodesic_distance, project_to_so3
+from rotavg_ros.core.view_graph import ViewGraph
+from rotavg_ros.errors import SolverError
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass
+class ComponentSolution:
+    """Rotations of one connected component in local indexing (anchor = identity)."""
+
+    rotations: FloatArray
+    kept: BoolArray
+    depth: int
+    cost_by_depth: dict[int, float]
+    iterations_by_depth: dict[int, int]
+
+
+def rotations_from_factor(H: FloatArray) -> FloatArray:
+    """Project H's 3x3 blocks onto SO(3), resolving the reflection in H -> H Q.
+
+    ``H_i ~= R_i Q`` with Q in O(3). If most blocks have det < 0, Q is a reflection: flip
+    the sign of H's last column (H diag(1, 1, -1) gives the same H H^T) before projecting.
+    """
+    dets = np.linalg.det(H)
+    if np.count_nonzero(dets < 0) > dets.size / 2:
+        H = H * np.array([1.0, 1.0, -1.0])
+    return project_to_so3(H)
+
+
+def observation_cost(
+    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
+) -> float:
+    """Eq. 3 with p = 1: sum_ij w_ij d(R_ij, R_i R_j^T), in radians."""
+    pred = np.einsum("eab,ecb->eac", rot[i], rot[j])
+    return float(np.sum(w * geodesic_distance(R, pred)))
+
+
+def resolve_device(name: str) -> str:
+    """``auto`` picks CUDA when available; an unavailable CUDA request raises ValueError."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise SolverError(f"device {name!r} requested but CUDA is not available here")
+    return name
+
+
+class RotationAverager:
+    """The paper's pipeline: filter -> DMF at each candidate depth -> pick -> project."""
+
+    def __init__(self, options: SolverOptions | None = None) -> None:
+        self.options = options or SolverOptions()
+        self.options.validate()
+
+    # ------------------------------------------------------------------ public
+    def solve(
+        self,
+        graph: ViewGraph,
+        anchor: Hashable | None = None,
+        initial: Mapping[Any, FloatArray] | None = None,
+        initial_depth: int | None = None,
+    ) -> SolveResult:
+        """Solve every connected component of ``graph``.
+
+        ``anchor`` (a node id; default: the first node added) gets identity; each other
+        component is anchored at its first-added node. Component label 0 is the anchor's.
+
+        ``initial`` (node id -> world-to-node rotation, any gauge), e.g. the previous
+        solution of a growing graph, warm-starts the solve: known nodes start there, new
+        ones from the spanning tree, and dense mode runs ``warm_iterations`` at
+        ``warm_lr`` for the single depth ``initial_depth`` (the previous choice).
+        """
+        edges = graph.edge_arrays()
+        ids = graph.node_ids
+        anchor_idx = graph.index_of(anchor) if anchor is not None and graph.has_node(
+            anchor) else 0
+        init = None
+        if initial:
+            init = np.full((graph.num_nodes, 3, 3), np.nan)
+            for k, node_id in enumerate(ids):
+                if node_id in initial:
+                    init[k] = initial[node_id]
+        result = average_rotations(
+            graph.num_nodes, edges.i, edges.j, edges.R, edges.weight, self.options,
+            anchor=anchor_idx, initial=init, initial_depth=initial_depth,
+        )
+        rotations, component, comp_anchor, depth, kept, costs, duration, iterations = result
+        residuals = _residuals_deg(rotations, edges.i, edges.j, edges.R)
+        return SolveResult(
+            node_ids=ids,
+            rotations=rotations,
+            component=component,
+            anchors=[ids[a] for a in comp_anchor],
+            depth=depth,
+            residuals_deg=residuals,
+            edge_inlier=kept,
+            num_filtered=int((~kept).sum()),
+            cost_by_depth=costs,
+            duration_s=duration,
+            iterations_by_depth=iterations,
+        )
+
+    def solve_component(
+        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+        initial: FloatArray | None = None, initial_depth: int | None = None,
+    ) -> ComponentSolution:
+        """Solve one connected graph in local indices; node 0 is the anchor.
+
+        ``initial`` (n, 3, 3) world-to-node rotations with NaN rows for unknown nodes.
+        """
+        opt = self.options
+        w = w / np.mean(w)
+        tree_rot: FloatArray | None = None
+        if opt.use_filter:
+            filt = filter_edges(i, j, R, w, n, opt.sigma, opt.use_support_count,
+                                opt.sigma_untested)
+            kept = filt.kept
+            tree_rot = filt.tree_rotations
+            self._say(f"filter: {filt.num_triangles} triangles, removed "
+                      f"{filt.num_removed}/{i.size} edges")
+        else:
+            kept = np.ones(i.size, bool)
+        fi, fj, fR, fw = i[kept], j[kept], R[kept], w[kept]
+        sparse = self.is_sparse(n, fi.size)
+        self._say(f"{'sparse' if sparse else 'dense'} mode: {n} nodes, {fi.size} edges")
+        H0 = None
+        if initial is not None and opt.explicit_constraint:
+            known = np.all(np.isfinite(initial.reshape(n, 9)), axis=1)
+            if known.mean() >= opt.warm_min_known:
+                if tree_rot is None:
+                    tree_rot = chordal_rotations(n, fi, fj, fR, fw)
+                H0 = warm_start_rotations(initial, known, tree_rot, fi, fj, fR, opt.sigma)
+                self._say(f"warm start: {int(known.sum())}/{n} nodes known")
+        fits = self._fit_depths(n, fi, fj, fR, fw, sparse, H0, initial_depth)
+        costs: dict[int, float] = {}
+        rots: dict[int, FloatArray] = {}
+        iterations = {depth: fit.iterations for depth, fit in fits.items()}
+        for depth, fit in fits.items():
+            rot = rotations_from_factor(fit.H)
+            if not np.all(np.isfinite(rot)):
+                continue
+            rots[depth] = rot
+            costs[depth] = observation_cost(rot, fi, fj, fR, fw)
+        if not costs:
+            raise FloatingPointError("every DMF candidate diverged (non-finite factors)")
+        best = min(costs, key=lambda d: costs[d])
+        rot = rots[best]
+        rot = project_to_so3(np.einsum("nab,cb->nac", rot, rot[0]))  # gauge: R_i R_0^T
+        rot[0] = np.eye(3)  # exactly, not up to the SVD's rounding
+        return ComponentSolution(rot, kept, best, costs, iterations)
+
+    def is_sparse(self, num_nodes: int, num_edges: int) -> bool:
+        """Whether the sparse-graph variant is used for this component."""
+        mode = self.options.mode
+        if mode not in ("auto", "dense", "sparse"):
+            raise ValueError(f"mode must be auto, dense or sparse, got {mode!r}")
+        if mode == "auto":
+            return 2.0 * num_edges / max(num_nodes, 1) < self.options.sparse_mean_degree
+        return mode == "sparse"
+
+    # ----------------------------------------------------------------- private
+    def _fit_depths(
+        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool,
+        warm: FloatArray | None = None, warm_depth: int | None = None,
+    ) -> dict[int, DMFFit]:
+        opt = self.options
+        device = resolve_device(opt.device)
+        width = opt.hidden_width or (3 * n if n <= opt.max_full_width_nodes
+                                     else opt.scalable_width)
+        depths = list(dict.fromkeys(opt.sparse_depths if sparse else opt.depths))
+        if warm is not None and not sparse:
+            depths = [warm_depth if warm_depth in depths else depths[0]]
+        H0: FloatArray | None = warm
+        delta = 0.0
+        if sparse and opt.explicit_constraint:
+            if H0 is None:
+                H0 = chordal_rotations(n, i, j, R, w)
+            pred = np.einsum("eab,ecb->eac", H0[i], H0[j])
+            delta = opt.huber_factor * float(np.median(np.abs(pred - R)))
+        graphed = opt.cuda_graphs and opt.explicit_constraint and not sparse
+        workers, intra = _thread_plan(len(depths), opt.threads, device, graphed)
+
+        def run(depth: int) -> DMFFit:
+            s = DMFSettings(
+                depth=depth, hidden_width=width, iterations=opt.iterations, lr=opt.lr,
+                reweighting=opt.reweighting, reweight_every=opt.reweight_every,
+                warmup=opt.warmup, init_scale=opt.init_scale, seed=opt.seed + depth,
+                device=device, huber_delta=delta, tolerance=opt.tolerance,
+                dtype=opt.dtype, cuda_graph=opt.cuda_graphs,
+            )
+
+            def report(step: int, loss: float) -> None:
+                self._say(f"depth {depth}: iteration {step}, loss {loss:.4g}")
+
+            if not opt.explicit_constraint:
+                return fit_vanilla(n, i, j, R, w, s, report)
+            if sparse and H0 is not None:
+                s.diagonal_weight = opt.sparse_diagonal_weight
+                return fit_symmetric_lbfgs(
+                    n, i, j, R, w, s, H0, rounds=opt.sparse_rounds,
+                    inner_iterations=opt.sparse_inner_iterations,
+                    outlier_factor=opt.sparse_outlier_factor, progress=report)
+            if warm is not None:
+                s.iterations, s.lr, s.warmup = opt.warm_iterations, opt.warm_lr, 0
+                return fit_symmetric(n, i, j, R, w, s, report, H0=warm)
+            return fit_symmetric(n, i, j, R, w, s, report)
+
+        previous = torch.get_num_threads()
+        torch.set_num_threads(intra)
+        try:
+            if workers == 1:
+                return {d: run(d) for d in depths}
+            # Largest depth first so the slow candidates start early.
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                futures = {d: pool.submit(run, d) for d in sorted(depths, reverse=True)}
+                return {d: futures[d].result() for d in depths}
+        finally:
+            torch.set_num_threads(previous)
+
+    def _say(self, text: str) -> None:
+        if self.options.progress is not None:
+            self.options.progress(text)
+
+
+def _thread_plan(
+    candidates: int, threads: int | None, device: str, graphed: bool = True,
+) -> tuple[int, int]:
+    """``(parallel candidate fits, torch threads per fit)``.
+
+    CUDA: fits whose step is a replayed CUDA graph (``graphed``: the dense fit with
+    ``cuda_graphs``) get a thread each, on a stream of their own, since a replay leaves the
+    host idle; other fits on CUDA run one at a time.
+
+    ``threads=None``: one thread per fit, as many fits at once as there are CPUs. The fits
+    are sequences of small tensor operations; torch's OpenMP threads spin-wait between them
+    and collapse when the CPU is shared (Ellis Island, one depth, beside one busy process:
+    3.7 s with one thread, 68.7 s with two), and a node runs beside a SLAM front end.
+    An explicit ``threads`` is split among the parallel fits.
+    """
+    if device != "cpu":
+        return (candidates if graphed else 1), torch.get_num_threads()
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    if threads is None:
+        return max(1, min(candidates, cpus or 1)), 1
+    workers = max(1, min(candidates, threads))
+    return workers, max(1, threads // workers)
+
+
+def warm_start_rotations(
+    initial: FloatArray, known: NDArray[np.bool_], tree: FloatArray,
+    i: IntArray, j: IntArray, R: FloatArray, sigma: float,
+) -> FloatArray:
+    """Known nodes keep ``initial`` unless their edges side with the tree; the others get
+    ``tree`` moved into the initial's gauge.
+
+    Both are world-to-node, so the gauge acts on the right: ``initial_i ~= tree_i Q`` with
+    ``Q = proj(sum_known tree_i^T initial_i)``. A previous solution can hold a node that was
+    wrong when it had few edges (a short warm fit cannot turn it round); so a known node
+    takes ``tree_i Q`` instead when more of its edges ``(i, j, R_ij)`` agree with it
+    (``d_chord(R_ij, R_i R_j^T) <= sigma``, the other end at its start value) than with
+    ``initial_i``; the gauge Q is then fitted again without the replaced nodes.
+    """
+    Q = project_to_so3(np.einsum("kba,kbc->ac", tree[known], initial[known]))
+    alt = tree @ Q
+    out = alt.copy()
+    out[known] = initial[known]
+    if i.size == 0:
+        return out
+    n = out.shape[0]
+
+    def agreeing(Ri: FloatArray, Rj: FloatArray) -> NDArray[np.float64]:
+        return (chordal_distance(R, np.einsum("eab,ecb->eac", Ri, Rj)) <= sigma).astype(float)
+
+    current = agreeing(out[i], out[j])
+    support_now = np.bincount(i, current, n) + np.bincount(j, current, n)
+    support_alt = (np.bincount(i, agreeing(alt[i], out[j]), n)
+                   + np.bincount(j, agreeing(out[i], alt[j]), n))
+    keep = known & ~(support_alt > support_now)
+    if keep.any() and not keep.all():  # the gauge again, without the replaced nodes
+        Q = project_to_so3(np.einsum("kba,kbc->ac", tree[keep], initial[keep]))
+        out[~keep] = (tree @ Q)[~keep]
+    return out
+
+
+def average_rotations(
+    num_nodes: int,
+    i: IntArray,
+    j: IntArray,
+    R: FloatArray,
+    weight: FloatArray,
+    options: SolverOptions | None = None,
+    anchor: int = 0,
+    initial: FloatArray | None = None,
+    initial_depth: int | None = None,
+) -> tuple[FloatArray, IntArray, list[int], int, BoolArray, dict[int, float], float,
+           dict[int, int]]:
+    """Array interface: solve each component; see :meth:`RotationAverager.solve`.
+
+    Returns ``(rotations, component, component_anchor, depth, kept, cost_by_depth,
+    duration_s, iterations_by_depth)`` where ``depth``, ``cost_by_depth`` and
+    ``iterations_by_depth`` belong to the largest component.
+    """
+    t0 = time.perf_counter()
+    averager = RotationAverager(options)
+    i = np.asarray(i, np.int64)
+    j = np.asarray(j, np.int64)
+    if i.size and (np.any(i == j) or min(i.min(), j.min()) < 0
+                   or max(i.max(), j.max()) >= num_nodes):
+        raise ValueError("edge indices must be distinct and in [0, num_nodes)")
+    labels = _component_labels(num_nodes, i, j, anchor)
+    rotations = np.tile(np.eye(3), (num_nodes, 1, 1))
+    kept = np.ones(i.size, bool)
+    comp_anchor: list[int] = []
+    depth, costs, iterations, best_size = 0, {}, {}, 0
+    for label in range(int(labels.max()) + 1 if num_nodes else 0):
+        nodes = np.flatnonzero(labels == label)
+        if label == 0 and anchor in nodes:
+            nodes = np.concatenate([[anchor], nodes[nodes != anchor]])
+        comp_anchor.append(int(nodes[0]))
+        if nodes.size < 2:
+            continue
+        local = np.full(num_nodes, -1, np.int64)
+        local[nodes] = np.arange(nodes.size)
+        sel = np.flatnonzero(labels[i] == label)
+        li, lj, lR = local[i[sel]], local[j[sel]], R[sel]
+        swap = li > lj
+        li, lj = np.where(swap, lj, li), np.where(swap, li, lj)
+        lR = np.where(swap[:, None, None], lR.transpose(0, 2, 1), lR)
+        sol = averager.solve_component(
+            nodes.size, li, lj, lR, weight[sel],
+            None if initial is None else initial[nodes], initial_depth)
+        rotations[nodes] = sol.rotations
+        kept[sel] = sol.kept
+        if nodes.size > best_size:
+            depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
+            iterations = sol.iterations_by_depth
+    return (rotations, labels, comp_anchor, depth, kept, costs, time.perf_counter() - t0,
+            iterations)
+
+
+def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:
+    """Labels with the anchor's component 0, then by decreasing size."""
+    if num_nodes == 0:
+        return np.zeros(0, np.int64)
+    adj = coo_matrix((np.ones(i.size), (i, j)), shape=(num_nodes, num_nodes))
+    _, raw = connected_components(adj, directed=False)
+    sizes = np.bincount(raw)
+    order = sorted(range(sizes.size), key=lambda c: (c != raw[anchor], -sizes[c], c))
+    relabel = np.empty(sizes.size, np.int64)
+    relabel[order] = np.arange(sizes.size)
+    return relabel[raw]
+
+
+def _residuals_deg(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray) -> FloatArray:
+    if i.size == 0:
+        return np.zeros(0)
+    pred = np.einsum("eab,ecb->eac", rot[i], rot[j])
+    return np.degrees(geodesic_distance(R, pred))

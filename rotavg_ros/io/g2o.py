@@ -1,0 +1,349 @@
+"""Read and write 3D pose graphs in the g2o text format (rotation part only).
+
+Conventions
+-----------
+* g2o ``VERTEX_SE3:QUAT id x y z qx qy qz qw`` stores the pose of body ``id`` in the world,
+  so its quaternion (ROS order x, y, z, w) is **node-to-world**. This module returns and
+  accepts **world-to-node** rotations ``R_i`` (the transpose), like the rest of the package.
+* ``EDGE_SE3:QUAT i j x y z qx qy qz qw I11 I12 .. I66`` measures ``T_i^-1 T_j``; its rotation
+  is ``Rg_i^T Rg_j`` with body-to-world ``Rg``, which equals ``R_i R_j^T`` for world-to-node
+  ``R_i = Rg_i^T``: the quaternion's matrix is used unchanged as the edge ``R_ij``.
+* The 21 information entries are the row-major upper triangle of the 6x6 information matrix
+  in the order (x, y, z, rx, ry, rz); entries 15..20 are the 3x3 rotation block. The edge
+  weight is ``trace(rotation block) / 3`` (raw, not normalised; 1 when the information part
+  is absent). Translations are parsed, checked for finiteness and ignored.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from collections.abc import Hashable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from rotavg_ros.core.so3 import matrix_to_quat, quat_to_matrix
+from rotavg_ros.core.view_graph import ViewGraph
+from rotavg_ros.errors import InputError
+
+FloatArray = NDArray[np.float64]
+PathLike = str | os.PathLike[str]
+
+VERTEX_TAG = "VERTEX_SE3:QUAT"
+EDGE_TAG = "EDGE_SE3:QUAT"
+
+#: g2o tags that are recognised but not used for rotation averaging (counted and skipped).
+UNSUPPORTED_TAGS: frozenset[str] = frozenset({
+    "FIX", "PARAMS_SE3OFFSET", "PARAMS_CAMERAPARAMETERS",
+    "VERTEX_SE2", "EDGE_SE2", "VERTEX_XY", "EDGE_SE2_XY", "EDGE_SE2_PRIOR",
+    "VERTEX_SE3:EXPMAP", "VERTEX_SE3:EULER", "EDGE_SE3:EULER", "EDGE_SE3_PRIOR",
+    "VERTEX_TRACKXYZ", "VERTEX_POINT_XYZ", "EDGE_SE3_TRACKXYZ", "EDGE_SE3_POINTXYZ",
+    "EDGE_PROJECT_XYZ2UV:EXPMAP", "EDGE_SE3_EXPMAP",
+})
+
+_N_INFO = 21
+_ROT_INFO = slice(15, 21)  # I44 I45 I46 I55 I56 I66
+_MIN_QUAT_NORM = 1e-6
+QUAT_NORM_TOL = 1e-3
+"""Largest accepted | ||q|| - 1 | of a quaternion (as the node's ``quaternion_tolerance``);
+within it q is normalised, beyond it the line is rejected as not a rotation."""
+
+
+class G2oFormatError(InputError):
+    """Malformed g2o input; the message starts with ``<file>:<1-based line>:``."""
+
+    def __init__(self, path: PathLike, line: int, message: str) -> None:
+        super().__init__(f"{os.fspath(path)}:{line}: {message}")
+        self.path = os.fspath(path)
+        self.line = line
+
+
+@dataclass
+class G2oGraph:
+    """Result of :func:`read_g2o`.
+
+    ``graph`` has integer node ids equal to the g2o vertex ids (vertices first, in file
+    order, then nodes first seen on an edge). ``vertex_rotations`` maps vertex id to the
+    world-to-node rotation of its ``VERTEX_SE3:QUAT`` line (empty when there is none).
+    """
+
+    graph: ViewGraph
+    vertex_rotations: dict[int, FloatArray]
+    num_lines: int
+    num_vertices: int = 0
+    num_edges: int = 0
+    num_unsupported: int = 0
+    """Lines with a known g2o tag that is not used here (``FIX``, ``EDGE_SE2``, ...)."""
+    num_unknown: int = 0
+    """Lines with an unknown tag (only non-zero with ``strict=False``)."""
+    skipped_tags: dict[str, int] = field(default_factory=dict)
+    """Count of every skipped tag (unsupported and unknown)."""
+
+
+class EdgeLike(Protocol):
+    """Anything with dense-index edge arrays (:class:`~rotavg_ros.core.view_graph.EdgeArrays`)."""
+
+    @property
+    def i(self) -> NDArray[np.int64]: ...
+    @property
+    def j(self) -> NDArray[np.int64]: ...
+    @property
+    def R(self) -> FloatArray: ...
+    @property
+    def weight(self) -> FloatArray: ...
+
+
+# ------------------------------------------------------------------ parsing helpers
+def _read_lines(path: PathLike) -> list[str]:
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    try:
+        return raw.decode("utf-8-sig").splitlines()  # a leading byte-order mark is dropped
+    except UnicodeDecodeError as exc:
+        line = len(raw[:exc.start].decode("utf-8", errors="replace").splitlines()) or 1
+        if raw[:exc.start].endswith((b"\n", b"\r")):
+            line += 1
+        raise G2oFormatError(path, line, "not UTF-8 text (binary data or another "
+                                         "encoding)") from None
+
+
+def _tokenized(lines: Iterable[str]) -> Iterator[tuple[int, list[str]]]:
+    """Yield ``(1-based line number, tokens)`` for non-blank, non-comment lines."""
+    for lineno, raw in enumerate(lines, start=1):
+        tokens = raw.split()
+        if tokens and not tokens[0].startswith("#"):
+            yield lineno, tokens
+
+
+def _int(path: PathLike, lineno: int, tok: str, what: str) -> int:
+    try:
+        return int(tok)
+    except ValueError:
+        raise G2oFormatError(path, lineno, f"{what} must be an integer, got {tok!r}") from None
+
+
+def _floats(path: PathLike, lineno: int, toks: Sequence[str], what: str) -> list[float]:
+    try:
+        vals = [float(t) for t in toks]
+    except ValueError as exc:
+        raise G2oFormatError(path, lineno, f"{what}: not a number ({exc})") from None
+    if not all(math.isfinite(v) for v in vals):
+        raise G2oFormatError(path, lineno, f"{what}: non-finite value (NaN/Inf)")
+    return vals
+
+
+def _quat(path: PathLike, lineno: int, q: Sequence[float]) -> FloatArray:
+    norm = math.sqrt(sum(v * v for v in q))
+    if norm < _MIN_QUAT_NORM:
+        raise G2oFormatError(path, lineno, f"degenerate quaternion (norm {norm:.3g})")
+    if abs(norm - 1.0) > QUAT_NORM_TOL:
+        raise G2oFormatError(path, lineno, f"quaternion norm {norm:.6g} is not 1 (tolerance "
+                             f"{QUAT_NORM_TOL:g}): not a rotation")
+    return quat_to_matrix(np.asarray(q, dtype=np.float64))
+
+
+def _rotation_weight(path: PathLike, lineno: int, info: Sequence[float]) -> float:
+    """``trace / 3`` of the rotation information block, which must be positive definite."""
+    a, b, c, d, e, f = info[_ROT_INFO]
+    if min(a, d, f) <= 0.0:
+        raise G2oFormatError(
+            path, lineno, f"rotation information diagonal must be > 0, got ({a}, {d}, {f})")
+    block = np.array([[a, b, c], [b, d, e], [c, e, f]])
+    if np.linalg.eigvalsh(block)[0] <= 0.0:
+        raise G2oFormatError(path, lineno, "rotation information block not positive definite")
+    return (a + d + f) / 3.0
+
+
+def _parse_vertex(path: PathLike, lineno: int, tokens: list[str]) -> tuple[int, FloatArray]:
+    if len(tokens) != 9:
+        raise G2oFormatError(
+            path, lineno, f"{VERTEX_TAG} expects 8 fields (id x y z qx qy qz qw), "
+            f"got {len(tokens) - 1}")
+    vid = _int(path, lineno, tokens[1], "vertex id")
+    vals = _floats(path, lineno, tokens[2:], VERTEX_TAG)
+    return vid, _quat(path, lineno, vals[3:7]).T  # node-to-world -> world-to-node
+
+
+def _parse_edge(
+    path: PathLike, lineno: int, tokens: list[str]
+) -> tuple[int, int, FloatArray, float]:
+    if len(tokens) not in (10, 10 + _N_INFO):
+        raise G2oFormatError(
+            path, lineno, f"{EDGE_TAG} expects 9 fields (i j x y z qx qy qz qw) plus "
+            f"optionally {_N_INFO} information entries, got {len(tokens) - 1}")
+    i = _int(path, lineno, tokens[1], "edge vertex id")
+    j = _int(path, lineno, tokens[2], "edge vertex id")
+    if i == j:
+        raise G2oFormatError(path, lineno, f"self-loop on vertex {i}")
+    vals = _floats(path, lineno, tokens[3:], EDGE_TAG)
+    R = _quat(path, lineno, vals[3:7])
+    weight = _rotation_weight(path, lineno, vals[7:]) if len(vals) > 7 else 1.0
+    return i, j, R, weight
+
+
+# ---------------------------------------------------------------------- public API
+def read_g2o(path: PathLike, strict: bool = True) -> G2oGraph:
+    """Parse the ``VERTEX_SE3:QUAT`` and ``EDGE_SE3:QUAT`` lines of a g2o file.
+
+    Edge rotations become ``R_ij ~= R_i R_j^T`` (world-to-node ``R_i``) with raw weight
+    ``trace(rotation information) / 3``. Known but unused tags are counted and skipped; an
+    unknown tag raises :class:`G2oFormatError` unless ``strict=False`` (then it is counted
+    and skipped). Malformed lines, self-loops, NaN/Inf, zero or non-unit quaternions
+    (beyond :data:`QUAT_NORM_TOL`), a non-positive-definite rotation information block and
+    duplicate vertex ids always raise.
+    """
+    graph = ViewGraph()
+    vertices: dict[int, FloatArray] = {}
+    skipped: dict[str, int] = {}
+    num_edges = num_unsupported = num_unknown = 0
+    lines = _read_lines(path)
+    for lineno, tokens in _tokenized(lines):
+        tag = tokens[0]
+        if tag == EDGE_TAG:
+            i, j, R, w = _parse_edge(path, lineno, tokens)
+            graph.add_edge(i, j, R, w)
+            num_edges += 1
+        elif tag == VERTEX_TAG:
+            vid, Rv = _parse_vertex(path, lineno, tokens)
+            if vid in vertices:
+                raise G2oFormatError(path, lineno, f"duplicate vertex id {vid}")
+            vertices[vid] = Rv
+            graph.add_node(vid)
+        elif tag in UNSUPPORTED_TAGS:
+            num_unsupported += 1
+            skipped[tag] = skipped.get(tag, 0) + 1
+        elif not strict:
+            num_unknown += 1
+            skipped[tag] = skipped.get(tag, 0) + 1
+        else:
+            raise G2oFormatError(path, lineno, f"unknown tag {tag!r}")
+    return G2oGraph(graph, vertices, len(lines), len(vertices), num_edges,
+                    num_unsupported, num_unknown, skipped)
+
+
+def read_g2o_vertices(path: PathLike) -> tuple[list[int], FloatArray]:
+    """Vertex ids (file order) and their world-to-node rotations ``(N, 3, 3)``.
+
+    Meant for reading solver output written by :func:`write_g2o`; every other line is
+    ignored (edges are not parsed), but malformed vertex lines raise.
+    """
+    ids: list[int] = []
+    rots: list[FloatArray] = []
+    seen: set[int] = set()
+    for lineno, tokens in _tokenized(_read_lines(path)):
+        if tokens[0] != VERTEX_TAG:
+            continue
+        vid, Rv = _parse_vertex(path, lineno, tokens)
+        if vid in seen:
+            raise G2oFormatError(path, lineno, f"duplicate vertex id {vid}")
+        seen.add(vid)
+        ids.append(vid)
+        rots.append(Rv)
+    return ids, (np.stack(rots) if rots else np.zeros((0, 3, 3)))
+
+
+def write_g2o(
+    path: PathLike,
+    node_ids: Sequence[Hashable],
+    rotations_world_to_node: ArrayLike,
+    edges: EdgeLike | None = None,
+) -> None:
+    """Write ``VERTEX_SE3:QUAT id 0 0 0 qx qy qz qw`` per node (+ optional edges).
+
+    ``node_ids`` must be integers (g2o ids). The vertex quaternion is that of the
+    node-to-world rotation ``R_i^T`` (g2o convention), printed with full precision (``repr``)
+    so :func:`read_g2o_vertices` recovers the rotations to ~1e-16. ``edges`` (dense indices
+    ``i``, ``j`` into ``node_ids``, ``R ~= R_i R_j^T``, ``weight``) become ``EDGE_SE3:QUAT``
+    lines with zero translation and information ``diag(1, 1, 1, w, w, w)``, so that
+    :func:`read_g2o` gives back the same rotations and weights.
+    """
+    R = np.asarray(rotations_world_to_node, dtype=np.float64)
+    ids = [_as_int_id(v) for v in node_ids]
+    if R.shape != (len(ids), 3, 3):
+        raise ValueError(f"rotations must have shape ({len(ids)}, 3, 3), got {R.shape}")
+    if not np.all(np.isfinite(R)):
+        raise ValueError("rotations must be finite")
+    out: list[str] = []
+    if ids:
+        q = matrix_to_quat(np.swapaxes(R, -1, -2))
+        for vid, qk in zip(ids, q, strict=False):
+            out.append(f"{VERTEX_TAG} {vid} 0 0 0 {_fmt(qk)}")
+    if edges is not None:
+        ei = np.asarray(edges.i, dtype=np.int64)
+        ej = np.asarray(edges.j, dtype=np.int64)
+        ew = np.asarray(edges.weight, dtype=np.float64)
+        eR = np.asarray(edges.R, dtype=np.float64).reshape(-1, 3, 3)
+        if not (ei.shape == ej.shape == ew.shape == (eR.shape[0],)):
+            raise ValueError("edges.i, edges.j, edges.R and edges.weight lengths differ")
+        if ei.size and (min(ei.min(), ej.min()) < 0 or max(ei.max(), ej.max()) >= len(ids)):
+            raise ValueError("edge indices out of range of node_ids")
+        if not np.all(np.isfinite(ew) & (ew > 0)):
+            raise ValueError("edge weights must be finite and > 0")
+        eq = matrix_to_quat(eR) if ei.size else np.zeros((0, 4))
+        for a, b, qk, w in zip(ei, ej, eq, ew, strict=False):
+            info = np.zeros(_N_INFO)
+            info[[0, 6, 11]] = 1.0
+            info[[15, 18, 20]] = w
+            out.append(f"{EDGE_TAG} {ids[a]} {ids[b]} 0 0 0 {_fmt(qk)} {_fmt(info)}")
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write("\n".join(out) + ("\n" if out else ""))
+
+
+def _as_int_id(v: Hashable) -> int:
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+        raise ValueError(f"g2o vertex ids must be integers, got {v!r}")
+    return int(v)
+
+
+def _fmt(values: FloatArray) -> str:
+    return " ".join(repr(float(v)) for v in values)
+
+
+# ---------------------------------------------------------------------- ids for frames
+_ID_PATTERN = re.compile(r"^(.*?)(0|[1-9][0-9]*)$")
+
+
+def g2o_id_mapping(node_ids: Sequence[Hashable]) -> tuple[list[int], str]:
+    """g2o integer ids for ``node_ids`` and a description of the mapping.
+
+    ``<prefix><int>`` with one common prefix and round-tripping integers (no leading zeros,
+    all distinct) -> those integers; otherwise ``0..N-1`` in order.
+    """
+    names = [str(n) for n in node_ids]
+    matches = [_ID_PATTERN.match(n) for n in names]
+    if names and all(matches):
+        prefixes = {m.group(1) for m in matches if m}
+        ints = [int(m.group(2)) for m in matches if m]
+        if len(prefixes) == 1 and len(set(ints)) == len(ints):
+            prefix = prefixes.pop()
+            how = (f"g2o id = the integer in frame id '{prefix}<id>'" if prefix
+                   else "g2o id = frame id")
+            return ints, how
+    return list(range(len(names))), "sequential g2o ids; see the .frames.tsv file"
+
+
+def write_g2o_with_mapping(path: Path, result: Any) -> str:
+    """Write the orientations to ``path`` (plus ``path.frames.tsv`` if ids are sequential)."""
+    ids, how = g2o_id_mapping(result.node_ids)
+    write_g2o(path, ids, result.rotations)
+    header = [f"# rotavg replay: node-to-world orientations of {len(ids)} frames; {how}"]
+    if how.startswith("sequential"):
+        sidecar = Path(f"{path}.frames.tsv") if not str(path).endswith(".g2o") else \
+            Path(str(path)[:-4] + ".frames.tsv")
+        with open(sidecar, "w", encoding="utf-8") as fh:
+            fh.write("g2o_id\tframe_id\n")
+            for i, node in zip(ids, result.node_ids, strict=True):
+                fh.write(f"{i}\t{node}\n")
+        header[0] = header[0].replace("the .frames.tsv file", sidecar.name)
+        how = how.replace("the .frames.tsv file", str(sidecar))
+    if len(set(map(str, result.anchors))) > 1:
+        header.append(f"# {len(result.anchors) - 1} component(s) not connected to the anchor "
+                      f"{result.anchors[0]} have their own gauge")
+    body = Path(path).read_text(encoding="utf-8")
+    Path(path).write_text("\n".join(header) + "\n" + body, encoding="utf-8")
+    return how

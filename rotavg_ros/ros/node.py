@@ -1,0 +1,720 @@
+"""``rotavg_node``: live rotation averaging over ROS 2 topics (rclpy).
+
+This module is the rclpy shell (parameters with descriptors, topics, services, scheduling,
+publishing). Everything it shares with the offline replay (parameter defaults and checks,
+settings, anchor choice and solve, solve bookkeeping, diagnostics) is in
+:mod:`rotavg_ros.pipeline`.
+
+Conventions
+-----------
+* ``R_i`` is the **world-to-node** rotation of node (frame) ``i``; an edge carries
+  ``R_ij ~= R_i R_j^T``.
+* Input: a ``geometry_msgs/msg/TransformStamped`` with ``header.frame_id = i`` and
+  ``child_frame_id = j`` whose rotation is frame ``j``'s orientation in frame ``i`` (the TF
+  convention) *is* ``R_ij``. ``nav_msgs/msg/Odometry`` is read the same way
+  (``pose.pose.orientation``), its rotation covariance sets the edge weight. Translations are
+  ignored. See :mod:`rotavg_ros.msg_adapters.inputs` for validation and the weight mapping; an edge that
+  names ``world_frame`` itself is rejected (``reserved_frame_id``): it would publish
+  ``world_frame -> world_frame``.
+* Output: node-to-world ``R_i^T`` as ``TransformStamped`` with
+  ``header.frame_id = world_frame`` and ``child_frame_id = i`` (tf2-ready; zero translation).
+
+Interfaces (relative names live under the node's name, e.g. ``/rotavg_node/edges``)
+-------------------------------------------------------------------------------------
+* Subscriptions: ``~/edges`` (TransformStamped), ``~/edges_with_covariance`` (Odometry);
+  reliable, KEEP_LAST ``qos_depth`` (10000). A reliable KEEP_LAST reader drops its oldest
+  queued edge when more than ``qos_depth`` wait, however the publisher is configured: a
+  publisher that can get further ahead of the node than that (a burst, a replay at full speed)
+  needs a larger ``qos_depth`` and a reliable publisher that keeps unacknowledged edges
+  (KEEP_LAST depth >= the burst, or KEEP_ALL); see ``scripts/bench_node_stress.py``.
+* Publishers: ``~/orientations`` (TransformStamped, one per node per solve; reliable,
+  KEEP_LAST ``orientations_qos_depth``), ``~/markers`` (MarkerArray), ``/diagnostics``
+  (DiagnosticArray).
+* Services (std_srvs/srv/Trigger): ``~/solve`` solves now and answers after the result has
+  been published (``success`` false when there is nothing to solve or the solve failed);
+  ``~/reset`` clears the graph and the counters.
+
+Solving
+-------
+A timer fires every ``solve_period`` seconds and starts a solve only if the graph's version
+changed since the last attempt. Solves run on one worker thread
+(``ThreadPoolExecutor(max_workers=1)``), never on the executor thread, so subscriptions keep
+being served; edges that arrive during a solve go into the live graph and into the next solve.
+At most one solve runs at a time and timer solves never stack: a tick that finds a solve
+running (and the graph changed) is skipped and counted (``timer_ticks_skipped_busy``), and one
+follow-up solve starts as soon as the running one ends, however many ticks were skipped: the
+solve that includes an edge starts at most one period, or at the end of the solve running when
+it arrived, after it. A ``~/solve`` request queues at most one extra solve behind the running
+one, so its answer reflects every edge accepted before the request; requests are served one
+at a time (:meth:`RotavgNode.request_solve` callers that find a solve queued and not started
+share it).
+
+Every output of a solve (orientations, markers, diagnostics) carries the same stamp: the node
+clock's time when the graph snapshot for that solve was taken. Besides, the diagnostics are
+published every ``DIAGNOSTICS_PERIOD_S`` (1 s, stamped now), as diagnostic aggregators expect.
+``~/orientations`` and ``~/markers`` are transient-local: a late subscriber that asks for that
+durability gets the last solve's output.
+
+Diagnostics (one ``DiagnosticStatus`` named ``"<node name>: rotation averaging"``, hardware_id
+= the node's fully qualified name): ``nodes``, ``measurements``, ``edges_received``,
+``edges_accepted``, ``edges_rejected``, one key per rejection reason (the adapters' reason
+strings, e.g. ``zero_quaternion``), ``default_weight_covariance``, ``clamped_weight``; after a
+solve ``solved_nodes``, ``solved_edges``, ``anchor``, ``components``, ``detached_components``,
+``filtered_outliers``, ``depth``, ``residual_{median,mean,max}_deg`` (inlier edges); and
+``last_solve_duration_s``, ``graph_version``, ``solved_version``, ``solves_completed``,
+``solves_failed``, ``timer_ticks_skipped_busy``, ``last_error``. Level: ERROR while the last
+solve raised; WARN for detached components, a median inlier residual above
+``residual_warn_deg`` or an ``anchor_frame`` not seen yet; OK otherwise.
+
+If the solver raises, the diagnostics turn ERROR with the exception text, the last good
+orientations are kept (nothing new is published) and edges keep being accepted; the graph is
+solved again once it changes. ``~/reset`` during a solve makes the node discard that result.
+
+Anchor and components
+---------------------
+``anchor_frame`` fixes the gauge: that frame gets identity. Empty (default) means the first
+frame ever accepted (``header.frame_id`` of the first valid edge). If ``anchor_frame`` is set
+but not seen yet, nothing is solved (diagnostics WARN) until it appears. Components that are
+not connected to the anchor are solved on their own, each with its own anchor = identity, and
+are still published under ``world_frame``; their rotations are not related to the anchor
+component's. The diagnostics turn WARN and list them (``detached_components``), and the
+markers draw them in the ``detached_*`` namespaces with muted colours.
+
+Executors
+---------
+The node works under ``SingleThreadedExecutor`` (what ``main`` uses), ``MultiThreadedExecutor``
+and ``rclpy.experimental.EventsExecutor``; it uses no guard conditions and no coroutine
+callbacks, which the EventsExecutor of Jazzy (rclpy 7.1) does not support.
+
+Both subscriptions and ``~/solve`` share one mutually exclusive callback group, the *ingest*
+group: edges are ingested one at a time, in arrival order per topic (this matters for
+``repeat_policy`` latest / first), and whichever callback holds the group may take edges straight
+from the subscriptions' queues, since no executor thread takes from them meanwhile:
+
+* A subscription callback ingests its message, then up to ``INGEST_BATCH`` more edges already
+  queued. The wait-set executors rebuild their wait set for every message they deliver
+  (several hundred microseconds in rclpy 7.1, a few times the cost of ingesting an edge);
+  taking the queued edges in the callback pays that once per batch when the node falls behind.
+* ``~/solve`` queues a solve on the worker and blocks until it is published, taking queued
+  edges in the meantime (polling every ``SOLVE_POLL_S``), so ingestion goes on during the wait
+  even on a single-threaded executor. On a single-threaded executor the timer and the other
+  services wait until the answer; on a ``MultiThreadedExecutor`` they run meanwhile.
+
+The timer and the other services use a reentrant group and coordinate through a lock.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+import sys
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TransformStamped
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.exceptions import InvalidHandle, ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from rotavg_ros.app.accumulator import (
+    AccumulatorStats,
+    EdgeAccumulator,
+    EdgeMeasurement,
+    Rejection,
+    make_accumulator,
+)
+from rotavg_ros.app.diagnostics import diagnostic_name, diagnostic_values
+from rotavg_ros.app.parameters import (
+    NODE_NAME,
+    PARAMETER_DEFAULTS,
+    Settings,
+    settings_from_parameters,
+)
+from rotavg_ros.app.session import (
+    FAILED,
+    NO_EDGES,
+    SOLVED,
+    SolveAttempt,
+    SolveBookkeeping,
+    SolveFn,
+    WarmStart,
+    solve_snapshot,
+)
+from rotavg_ros.app.solver_process import SubprocessSolver
+from rotavg_ros.core.result import SolveResult
+from rotavg_ros.io.graph_store import load_graph, save_graph
+from rotavg_ros.msg_adapters.inputs import edge_from_odometry, edge_from_transform
+from rotavg_ros.ros.messages import (
+    clear_markers,
+    diagnostic_array,
+    diagnostic_status,
+    orientation_markers,
+    orientation_transforms,
+)
+
+INGEST_BATCH = 256
+"""Queued edges a callback of the ingest group takes beyond the one it was given."""
+DIAGNOSTICS_PERIOD_S = 1.0
+"""Period of the /diagnostics publication besides solves (aggregators expect about 1 Hz)."""
+SOLVE_POLL_S = 0.01
+"""While ``~/solve`` waits for its solve, it looks for queued edges this often (s)."""
+
+
+def _warm_import() -> None:
+    try:
+        import rotavg_ros.core.solver  # noqa: F401
+    except Exception:  # noqa: BLE001 - reported by the first solve instead
+        pass
+
+
+@dataclass(frozen=True)
+class SolveOutcome:
+    """What one solve job did; ``~/solve`` answers with it."""
+
+    success: bool
+    message: str
+
+
+def _descriptor(
+    description: str,
+    *,
+    fp_range: tuple[float, float] | None = None,
+    int_range: tuple[int, int] | None = None,
+    read_only: bool = False,
+    constraints: str = "",
+) -> ParameterDescriptor:
+    desc = ParameterDescriptor(
+        description=description, read_only=read_only, additional_constraints=constraints
+    )
+    if fp_range is not None:
+        desc.floating_point_range = [
+            FloatingPointRange(from_value=fp_range[0], to_value=fp_range[1], step=0.0)
+        ]
+    if int_range is not None:
+        desc.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=0)]
+    return desc
+
+
+# name -> descriptor; defaults (and checks) come from rotavg_ros.pipeline. See config/rotavg.yaml.
+_DESCRIPTORS: dict[str, ParameterDescriptor] = {
+    "world_frame": _descriptor(
+        "Frame id of the published orientations' header (the parent frame in TF).",
+        constraints="non-empty frame id without '/' prefix"),
+    "anchor_frame": _descriptor(
+        "Frame that gets the identity rotation; empty = the first frame accepted."),
+    "solve_period": _descriptor(
+        "Seconds between timer checks; a solve starts only if the graph changed.",
+        fp_range=(0.01, 3600.0), read_only=True),
+    "repeat_policy": _descriptor(
+        "How repeated measurements of one frame pair combine: merge (robust average, weights "
+        "add), latest (newest wins) or first (oldest wins).",
+        read_only=True, constraints="one of: merge, latest, first"),
+    "quaternion_tolerance": _descriptor(
+        "Accepted | |q| - 1 |; within it the quaternion is normalised, beyond it the edge is "
+        "rejected as non_unit_quaternion.", fp_range=(0.0, 0.5)),
+    "reference_variance": _descriptor(
+        "Per-axis rotation variance (rad^2) of an Odometry edge that gets weight 1; "
+        "weight = 3 * reference_variance / trace(rotation covariance). Default (1 deg)^2.",
+        fp_range=(1e-12, 10.0)),
+    "min_weight": _descriptor(
+        "Lower clamp of covariance-derived edge weights.", fp_range=(1e-9, 1e9)),
+    "max_weight": _descriptor(
+        "Upper clamp of covariance-derived edge weights.", fp_range=(1e-9, 1e9)),
+    "mode": _descriptor(
+        "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "
+        "L-BFGS, for chain-like SLAM graphs) or auto (by mean degree).",
+        constraints="one of: auto, dense, sparse"),
+    "depths": _descriptor(
+        "Candidate DMF depths (positive, even); the one with the lowest cost wins.",
+        constraints="non-empty list of positive even integers"),
+    "iterations": _descriptor(
+        "Gradient iterations of the DMF optimisation per depth.", int_range=(1, 10_000_000)),
+    "sigma": _descriptor(
+        "Spanning-tree filter threshold on the chordal distance d_chord(R_ij, R_ij^tree).",
+        fp_range=(0.0, 2.83)),
+    "seed": _descriptor("Random seed of the solver.", int_range=(0, 2**31 - 1)),
+    "graph_file": _descriptor(
+        "g2o file of the live graph (rotavg_ros.io.graph_store format): loaded at start when it "
+        "exists, written by ~/save_graph and on a clean shutdown; empty = no persistence.",
+        read_only=True),
+    "solve_in_subprocess": _descriptor(
+        "Run the solver in a child process (default) so a long solve cannot starve the "
+        "subscriptions of the interpreter lock; false runs it in the worker thread.",
+        read_only=True),
+    "solver_niceness": _descriptor(
+        "Added to the solver child process's nice value (POSIX), so solves use the CPU the "
+        "node and its neighbours (a SLAM front end) leave idle; 0 = same priority as the "
+        "node.", int_range=(0, 19), read_only=True),
+    "warm_start": _descriptor(
+        "Warm-start each re-solve from the previous solution (known nodes keep their "
+        "rotation, new ones start from the spanning tree; dense mode then runs a short "
+        "fit at the previous depth)."),
+    "device": _descriptor(
+        "Torch device of the solver: cpu, cuda, cuda:N or auto (CUDA when available).",
+        constraints="cpu, cuda, cuda:N or auto"),
+    "threads": _descriptor(
+        "Torch CPU threads for the solver, split among the depth candidates; 0 = one "
+        "thread per candidate, candidates in parallel up to the CPU count.", int_range=(0, 1024)),
+    "publish_markers": _descriptor(
+        "Publish ~/markers (RViz MarkerArray) after solves, when something subscribes."),
+    "marker_spacing": _descriptor(
+        "Grid spacing (m) of the marker layout (there are no translations to show).",
+        fp_range=(0.01, 100.0)),
+    "residual_warn_deg": _descriptor(
+        "Diagnostics turn WARN when the median inlier residual exceeds this (deg).",
+        fp_range=(0.0, 180.0)),
+    "qos_depth": _descriptor(
+        "KEEP_LAST depth of the reliable edge subscriptions.",
+        int_range=(1, 1_000_000), read_only=True),
+    "orientations_qos_depth": _descriptor(
+        "KEEP_LAST depth of ~/orientations; a solve publishes one message per node, so keep "
+        "it at least the number of nodes.", int_range=(1, 10_000_000), read_only=True),
+}
+# name -> (default, descriptor): every parameter the node declares.
+PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
+    name: (default, _DESCRIPTORS[name]) for name, default in PARAMETER_DEFAULTS.items()
+}
+
+
+class RotavgNode(Node):
+    """ROS 2 node that averages relative rotations into absolute orientations.
+
+    :param solve_fn: replaces the solver (tests inject slow or failing solvers here).
+    :param node_name: node name (remapping with ``-r __node:=...`` still applies).
+    :param kwargs: forwarded to :class:`rclpy.node.Node` (``context``, ``namespace``,
+        ``parameter_overrides``, ``cli_args``, ...).
+    """
+
+    def __init__(
+        self, *, solve_fn: SolveFn | None = None, node_name: str = NODE_NAME, **kwargs: Any
+    ) -> None:
+        super().__init__(node_name, **kwargs)
+        for name, (default, descriptor) in PARAMETERS.items():
+            self.declare_parameter(name, default, descriptor)
+        self._settings = self._read_settings()  # raises ValueError for an invalid value
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._after_set_parameters)
+
+        # Test hook, else None: the default solver runs in a child process (no GIL contention
+        # with the subscriptions) when ``solve_in_subprocess``, in the worker thread otherwise.
+        self._solve_fn: SolveFn | None = solve_fn
+        self._runner: SubprocessSolver | None = (
+            SubprocessSolver(self.get_parameter("solver_niceness").value) if solve_fn is None
+            and self.get_parameter("solve_in_subprocess").value else None)
+        self._acc = make_accumulator(self.get_parameter("repeat_policy").value)
+        self._graph_file = str(self.get_parameter("graph_file").value)
+        # Orientations (and depth) stored in graph_file: the warm start of the first solve
+        # after a restart (then the last result takes over); cleared by ~/reset.
+        self._stored: WarmStart | None = None
+        if self._graph_file and os.path.exists(self._graph_file):
+            stored = load_graph(self._graph_file)  # a broken file stops the start: say why
+            self._acc.add_many(stored.measurements)
+            if stored.orientations:
+                self._stored = WarmStart(stored.orientations, stored.depth)
+            self.get_logger().info(
+                f"loaded {len(stored.measurements)} measurements and "
+                f"{len(stored.orientations)} orientations from {self._graph_file}")
+
+        # Scheduling state, guarded by _sched_lock.
+        self._sched_lock = threading.Lock()
+        # Jobs submitted to the worker whose _follow_up has not run yet: a timer tick that
+        # sees one is "busy". Counted, not read from futures, so no tick can slip in between
+        # a job's follow-up check and its future completing (that lost a follow-up solve).
+        self._jobs_pending = 0
+        self._forced: concurrent.futures.Future[SolveOutcome] | None = None
+        self._last_attempted_version = -1
+        self._tick_skipped = False  # a busy tick saw a changed graph: solve after the running one
+        self._closing = False
+        # Held from the worker's "was the graph reset?" check to the end of its publishing,
+        # and by ~/reset: a reset never interleaves with the publication of a stale result.
+        self._publish_lock = threading.Lock()
+        # Solve bookkeeping: written by the worker (and ~/reset under _publish_lock), except
+        # skipped_busy, which the timer counts under _sched_lock.
+        self._book = SolveBookkeeping()
+
+        self._pool = concurrent.futures.ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="rotavg_solver"
+        )
+        if self._runner is not None:
+            self._runner.warm_up()
+        elif solve_fn is None:
+            self._pool.submit(_warm_import)
+
+        self._ingest_group = MutuallyExclusiveCallbackGroup()
+        self._control_group = ReentrantCallbackGroup()
+        in_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=self.get_parameter("qos_depth").value,
+            reliability=ReliabilityPolicy.RELIABLE,
+        )
+        self._sub_tf = self.create_subscription(
+            TransformStamped, "~/edges", self._on_transform, in_qos,
+            callback_group=self._ingest_group,
+        )
+        self._sub_odom = self.create_subscription(
+            Odometry, "~/edges_with_covariance", self._on_odometry, in_qos,
+            callback_group=self._ingest_group,
+        )
+        self._pub_orientations = self._orientations_publisher()
+        self._markers_shown: SolveResult | None = None  # result of the last markers published
+        self._pub_markers = self.create_publisher(MarkerArray, "~/markers", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._srv_solve = self.create_service(
+            Trigger, "~/solve", self._on_solve_request, callback_group=self._ingest_group
+        )
+        self._srv_reset = self.create_service(
+            Trigger, "~/reset", self._on_reset_request, callback_group=self._control_group
+        )
+        self._srv_save = self.create_service(
+            Trigger, "~/save_graph", self._on_save_request, callback_group=self._control_group
+        )
+        self._timer = self.create_timer(
+            self.get_parameter("solve_period").value, self._on_timer,
+            callback_group=self._control_group,
+        )
+        self._diag_timer = self.create_timer(
+            DIAGNOSTICS_PERIOD_S, self._on_diagnostics_timer, callback_group=self._control_group,
+        )
+        self.get_logger().info(
+            f"averaging rotations from {self._sub_tf.topic_name} and "
+            f"{self._sub_odom.topic_name} into {self._pub_orientations.topic_name}"
+        )
+
+    def _orientations_publisher(self) -> Any:
+        # Transient local: a subscriber that joins later (and asks for transient-local
+        # durability) still gets the latest orientations, as with /tf_static.
+        return self.create_publisher(TransformStamped, "~/orientations", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=self.get_parameter("orientations_qos_depth").value,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        ))
+
+    # ------------------------------------------------------------------ public
+    @property
+    def accumulator(self) -> EdgeAccumulator:
+        """The live edge store (thread-safe)."""
+        return self._acc
+
+    @property
+    def last_result(self) -> SolveResult | None:
+        """The last successful solve's result (None before the first one or after a reset)."""
+        return self._book.last_result
+
+    def request_solve(self) -> concurrent.futures.Future[SolveOutcome]:
+        """Queue a solve (what ``~/solve`` does) and return its future."""
+        with self._sched_lock:
+            forced = self._forced
+            if forced is not None and not forced.running() and not forced.done():
+                return forced  # queued, not started: it will see every edge accepted so far
+            future = self._submit_locked(force=True)
+            self._forced = future
+            return future
+
+    def destroy_node(self) -> None:
+        """Stop the worker (waits for a running solve), save the graph, destroy the node."""
+        with self._sched_lock:
+            self._closing = True
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._graph_file and self._acc.stats().accepted:  # with the newest result
+            ok, message = self.save_graph()
+            if self.context.ok():
+                (self.get_logger().info if ok else self.get_logger().error)(message)
+            else:  # after Ctrl-C / SIGTERM the context is down: /rosout is gone
+                print(f"[{self.get_name()}] {message}", file=sys.stderr, flush=True)
+        if self._runner is not None:
+            self._runner.close()
+        super().destroy_node()
+
+    # ------------------------------------------------------------------ parameters
+    def _read_settings(self, changed: Sequence[Parameter] = ()) -> Settings:
+        """Settings from the current parameter values, with ``changed`` applied on top.
+
+        Raises ``ValueError`` (see :func:`rotavg_ros.app.parameters.settings_from_parameters`).
+        """
+        values = {name: self.get_parameter(name).value for name in PARAMETERS}
+        values.update({p.name: p.value for p in changed})
+        return settings_from_parameters(values)
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        try:
+            self._read_settings(params)
+        except ValueError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _after_set_parameters(self, params: list[Parameter]) -> None:
+        self._settings = self._read_settings()
+
+    # ------------------------------------------------------------------ ingestion
+    def _on_transform(self, msg: TransformStamped) -> None:
+        self._ingest(edge_from_transform(msg, self._settings.adapter))
+        self._take_queued(INGEST_BATCH)
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        self._ingest(edge_from_odometry(msg, self._settings.adapter))
+        self._take_queued(INGEST_BATCH)
+
+    def _take_queued(self, limit: int) -> int:
+        """Take and ingest up to ``limit`` edges waiting in the subscriptions' queues.
+
+        Only for callbacks of the ingest group (see "Executors" in the module docstring).
+        Returns how many were taken.
+        """
+        taken = 0
+        for sub, adapt in ((self._sub_tf, edge_from_transform),
+                           (self._sub_odom, edge_from_odometry)):
+            while taken < limit:
+                try:
+                    with sub.handle:
+                        msg_info = sub.handle.take_message(sub.msg_type, sub.raw)
+                except InvalidHandle:  # destroyed: the node is shutting down
+                    return taken
+                if msg_info is None:
+                    break
+                self._ingest(adapt(msg_info[0], self._settings.adapter))
+                taken += 1
+        return taken
+
+    def _ingest(self, item: EdgeMeasurement | Rejection) -> None:
+        if not self._acc.add(item) and isinstance(item, Rejection):
+            self.get_logger().warning(
+                f"rejected edge ({item.reason}): {item.detail}", throttle_duration_sec=5.0
+            )
+
+    # ------------------------------------------------------------------ scheduling
+    def _on_timer(self) -> None:
+        stats = self._acc.stats()
+        with self._sched_lock:
+            if self._closing:
+                return
+            busy = self._jobs_pending > 0
+            changed = stats.version != self._last_attempted_version
+            if busy:
+                if changed:
+                    self._book.skipped_busy += 1
+                    self._tick_skipped = True
+                return
+            if changed:
+                self._submit_locked(force=False)
+
+    def _on_diagnostics_timer(self) -> None:
+        with self._sched_lock:
+            if self._closing:
+                return
+        stamp = self.get_clock().now().to_msg()
+        settings = self._settings
+        try:
+            with self._publish_lock:  # a viewer that subscribed after solves left markers out
+                last = self._book.last_result
+                if (settings.publish_markers and last is not None
+                        and last is not self._markers_shown
+                        and self._pub_markers.get_subscription_count() > 0):
+                    self._publish_markers(last, stamp, settings)
+            self._publish_diagnostics(stamp)
+        except InvalidHandle:  # destroyed meanwhile: the node is shutting down
+            pass
+
+    def _on_solve_request(
+        self, request: Trigger.Request, response: Trigger.Response
+    ) -> Trigger.Response:
+        future = self.request_solve()
+        while not future.done():  # keep ingesting: this callback holds the ingest group
+            if not self._take_queued(INGEST_BATCH):
+                concurrent.futures.wait([future], timeout=SOLVE_POLL_S)
+        try:
+            outcome = future.result()
+        except concurrent.futures.CancelledError:
+            outcome = SolveOutcome(False, "node is shutting down")
+        response.success = outcome.success
+        response.message = outcome.message
+        return response
+
+    def _on_reset_request(
+        self, request: Trigger.Request, response: Trigger.Response
+    ) -> Trigger.Response:
+        with self._publish_lock:
+            self._acc.reset()
+            self._book.reset()
+            self._stored = None
+            # Late (transient-local) subscribers must not get pre-reset output.
+            self.destroy_publisher(self._pub_orientations)
+            self._pub_orientations = self._orientations_publisher()
+            if self._markers_shown is not None:
+                self._pub_markers.publish(clear_markers(
+                    self._settings.world_frame, self.get_clock().now().to_msg()))
+                self._markers_shown = None
+        self.get_logger().info("graph reset")
+        response.success = True
+        response.message = "graph and counters cleared"
+        return response
+
+    def _on_save_request(
+        self, request: Trigger.Request, response: Trigger.Response
+    ) -> Trigger.Response:
+        response.success, response.message = self.save_graph()
+        return response
+
+    def _warm_start(self) -> WarmStart | None:
+        """The last result's orientations, else those loaded from ``graph_file``."""
+        return WarmStart.of(self._book.last_result) or self._stored
+
+    def save_graph(self) -> tuple[bool, str]:
+        """Write the live graph and the last orientations to ``graph_file``."""
+        if not self._graph_file:
+            return False, "graph_file parameter is empty: nowhere to save"
+        snap = self._acc.snapshot()
+        warm = self._warm_start()
+        try:
+            count = save_graph(self._graph_file, snap.graph,
+                               warm.rotations if warm else None, warm.depth if warm else None)
+        except OSError as exc:
+            return False, f"could not write {self._graph_file}: {exc}"
+        return True, f"saved {count} measurements to {self._graph_file}"
+
+    # ------------------------------------------------------------------ worker
+    def _solve_job(self, force: bool) -> SolveOutcome:
+        """Runs on the worker thread: snapshot, solve, publish."""
+        try:
+            return self._solve_and_publish(force)
+        except Exception as exc:  # noqa: BLE001 - never let the worker die silently
+            if self._closing:
+                return SolveOutcome(False, "node is shutting down")
+            self.get_logger().error(f"solve job failed: {exc!r}")
+            return SolveOutcome(False, f"internal error: {exc!r}")
+        finally:
+            self._follow_up()
+
+    def _submit_locked(self, force: bool) -> concurrent.futures.Future[SolveOutcome]:
+        """Queue a solve job on the worker; the caller holds ``_sched_lock``."""
+        future = self._pool.submit(self._solve_job, force)
+        self._jobs_pending += 1  # the job's _follow_up waits for this lock to decrement
+        return future
+
+    def _follow_up(self) -> None:
+        """End of a job: queue the solve that busy timer ticks skipped (one, however many)."""
+        with self._sched_lock:
+            self._jobs_pending -= 1
+            if not self._tick_skipped or self._closing:
+                return
+            self._tick_skipped = False
+            if self._jobs_pending > 0:
+                return  # the ~/solve job queued behind this one sees those edges too
+            self._submit_locked(force=False)
+
+    def _solve_and_publish(self, force: bool) -> SolveOutcome:
+        if self._closing:
+            return SolveOutcome(False, "node is shutting down")
+        settings = self._settings
+        snap = self._acc.snapshot()
+        with self._sched_lock:
+            if not force and snap.version == self._last_attempted_version:
+                return SolveOutcome(True, "graph unchanged")
+            self._last_attempted_version = snap.version
+        stamp = self.get_clock().now().to_msg()
+        attempt = solve_snapshot(snap, settings, self._solve_fn, self._warm_start(),
+                                 self._runner)
+        if attempt.status == SOLVED:
+            with self._publish_lock:
+                if self._acc.generation != snap.generation:
+                    return SolveOutcome(False, "graph was reset during the solve; result discarded")
+                self._book.record(attempt, snap.version)
+                self._publish_result(attempt, stamp, settings)
+            return SolveOutcome(True, attempt.message)
+        self._book.record(attempt, snap.version)
+        if attempt.status == NO_EDGES and settings.publish_markers:
+            with self._publish_lock:
+                self._pub_markers.publish(clear_markers(settings.world_frame, stamp))
+                self._markers_shown = None
+        elif attempt.status == FAILED:
+            self.get_logger().error(
+                f"solve failed, keeping the last orientations: {attempt.error}"
+            )
+        self._publish_diagnostics(stamp)
+        return SolveOutcome(False, attempt.message)
+
+    def _publish_result(self, attempt: SolveAttempt, stamp: Any, settings: Settings) -> None:
+        result = attempt.result
+        assert result is not None
+        for msg in orientation_transforms(
+            result.node_ids, result.rotations, settings.world_frame, stamp
+        ):
+            self._pub_orientations.publish(msg)
+        # Markers cost about 1.5 ms per node to build in Python: only for an actual viewer.
+        if settings.publish_markers and self._pub_markers.get_subscription_count() > 0:
+            self._publish_markers(result, stamp, settings)
+        self._publish_diagnostics(stamp)
+
+    def _publish_markers(self, result: SolveResult, stamp: Any, settings: Settings) -> None:
+        """Under ``_publish_lock``."""
+        self._pub_markers.publish(orientation_markers(
+            result.node_ids, result.rotations, result.component, result.anchors,
+            settings.world_frame, stamp, spacing=settings.marker_spacing,
+        ))
+        self._markers_shown = result
+
+    # ------------------------------------------------------------------ diagnostics
+    def _publish_diagnostics(self, stamp: Any, stats: AccumulatorStats | None = None) -> None:
+        stats = stats if stats is not None else self._acc.stats()
+        level, message, values = diagnostic_values(stats, self._book, self._settings)
+        status = diagnostic_status(
+            diagnostic_name(self.get_name()), level, message, values,
+            hardware_id=self.get_fully_qualified_name(),
+        )
+        self._pub_diag.publish(diagnostic_array([status], stamp))
+
+
+FASTDDS_PROFILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fastdds_profile.xml")
+"""Fast DDS profile with a 100 ms writer heartbeat (see the file for why)."""
+
+
+def main(args: Sequence[str] | None = None) -> None:
+    """Console script ``rotavg_node``: spin the node on a SingleThreadedExecutor.
+
+    A parameter the node refuses or a broken ``graph_file`` ends it with exit status 2 and
+    one line on stderr that says why.
+
+    Unless ``FASTRTPS_DEFAULT_PROFILES_FILE`` is set, it points Fast DDS at
+    :data:`FASTDDS_PROFILE` first (read when the DDS participant is created; other RMWs
+    ignore it). Processes that embed :class:`RotavgNode` can set the variable themselves.
+    """
+    if os.path.exists(FASTDDS_PROFILE):
+        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", FASTDDS_PROFILE)
+    rclpy.init(args=list(args) if args is not None else None)
+    node: RotavgNode | None = None
+    try:
+        try:
+            node = RotavgNode()
+        except (ValueError, OSError, ParameterException) as exc:
+            # A refused parameter or an unreadable graph_file: one line, no traceback.
+            print(f"rotavg_node: error: {exc}", file=sys.stderr, flush=True)
+            sys.exit(2)
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
