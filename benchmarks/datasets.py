@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from rotavg_ros.io.onedsfm import read_1dsfm_npz, read_rotations_npz
-from rotavg_ros.io.g2o import read_g2o
 from rotavg_ros.core.view_graph import ViewGraph
+from rotavg_ros.io.g2o import read_g2o
+from rotavg_ros.io.onedsfm import read_1dsfm_npz, read_rotations_npz
 
 FloatArray = NDArray[np.float64]
 

@@ -35,8 +35,8 @@ from benchmarks.datasets import (
     shared_dir_or_say,
 )
 from rotavg_ros.core.metrics import evaluate
-from rotavg_ros.core.solver import RotationAverager
 from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.solver import RotationAverager
 
 GRAPHS = ("ellis", *SE_SYNC_GRAPHS)
 OURS = "filtered-DMF (ours)"

@@ -50,9 +50,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer  # noqa: E402
 
-from rotavg_ros.io.bag_messages import TF_MESSAGE, TRANSFORM_STAMPED, MessageFactory  # noqa: E402
 from benchmarks.datasets import find_shared_dir, load_ellis_island, load_se_sync  # noqa: E402
 from rotavg_ros.core.so3 import matrix_to_quat, quat_to_matrix, rotation_about_axis  # noqa: E402
+from rotavg_ros.io.bag_messages import TF_MESSAGE, TRANSFORM_STAMPED, MessageFactory  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 BAGS = REPO / "bags"

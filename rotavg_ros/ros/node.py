@@ -1,106 +1,13 @@
-"""``rotavg_node``: live rotation averaging over ROS 2 topics (rclpy).
+"""``rotavg_node``: live rotation averaging over ROS 2 topics (the rclpy shell).
 
-This module is the rclpy shell (parameters with descriptors, topics, services, scheduling,
-publishing). Everything it shares with the offline replay (parameter defaults and checks,
-settings, anchor choice and solve, solve bookkeeping, diagnostics) is in
-:mod:`rotavg_ros.pipeline`.
+Parameters with descriptors, subscriptions, services, the solve timer and publishing live
+here; everything the node shares with the offline replay (parameters, ingest, solve session,
+solver process, diagnostics) is in :mod:`rotavg_ros.app`. Interfaces, scheduling, executors
+and diagnostics keys are described in ``docs/node.md``.
 
-Conventions
------------
-* ``R_i`` is the **world-to-node** rotation of node (frame) ``i``; an edge carries
-  ``R_ij ~= R_i R_j^T``.
-* Input: a ``geometry_msgs/msg/TransformStamped`` with ``header.frame_id = i`` and
-  ``child_frame_id = j`` whose rotation is frame ``j``'s orientation in frame ``i`` (the TF
-  convention) *is* ``R_ij``. ``nav_msgs/msg/Odometry`` is read the same way
-  (``pose.pose.orientation``), its rotation covariance sets the edge weight. Translations are
-  ignored. See :mod:`rotavg_ros.msg_adapters.inputs` for validation and the weight mapping; an edge that
-  names ``world_frame`` itself is rejected (``reserved_frame_id``): it would publish
-  ``world_frame -> world_frame``.
-* Output: node-to-world ``R_i^T`` as ``TransformStamped`` with
-  ``header.frame_id = world_frame`` and ``child_frame_id = i`` (tf2-ready; zero translation).
-
-Interfaces (relative names live under the node's name, e.g. ``/rotavg_node/edges``)
--------------------------------------------------------------------------------------
-* Subscriptions: ``~/edges`` (TransformStamped), ``~/edges_with_covariance`` (Odometry);
-  reliable, KEEP_LAST ``qos_depth`` (10000). A reliable KEEP_LAST reader drops its oldest
-  queued edge when more than ``qos_depth`` wait, however the publisher is configured: a
-  publisher that can get further ahead of the node than that (a burst, a replay at full speed)
-  needs a larger ``qos_depth`` and a reliable publisher that keeps unacknowledged edges
-  (KEEP_LAST depth >= the burst, or KEEP_ALL); see ``scripts/bench_node_stress.py``.
-* Publishers: ``~/orientations`` (TransformStamped, one per node per solve; reliable,
-  KEEP_LAST ``orientations_qos_depth``), ``~/markers`` (MarkerArray), ``/diagnostics``
-  (DiagnosticArray).
-* Services (std_srvs/srv/Trigger): ``~/solve`` solves now and answers after the result has
-  been published (``success`` false when there is nothing to solve or the solve failed);
-  ``~/reset`` clears the graph and the counters.
-
-Solving
--------
-A timer fires every ``solve_period`` seconds and starts a solve only if the graph's version
-changed since the last attempt. Solves run on one worker thread
-(``ThreadPoolExecutor(max_workers=1)``), never on the executor thread, so subscriptions keep
-being served; edges that arrive during a solve go into the live graph and into the next solve.
-At most one solve runs at a time and timer solves never stack: a tick that finds a solve
-running (and the graph changed) is skipped and counted (``timer_ticks_skipped_busy``), and one
-follow-up solve starts as soon as the running one ends, however many ticks were skipped: the
-solve that includes an edge starts at most one period, or at the end of the solve running when
-it arrived, after it. A ``~/solve`` request queues at most one extra solve behind the running
-one, so its answer reflects every edge accepted before the request; requests are served one
-at a time (:meth:`RotavgNode.request_solve` callers that find a solve queued and not started
-share it).
-
-Every output of a solve (orientations, markers, diagnostics) carries the same stamp: the node
-clock's time when the graph snapshot for that solve was taken. Besides, the diagnostics are
-published every ``DIAGNOSTICS_PERIOD_S`` (1 s, stamped now), as diagnostic aggregators expect.
-``~/orientations`` and ``~/markers`` are transient-local: a late subscriber that asks for that
-durability gets the last solve's output.
-
-Diagnostics (one ``DiagnosticStatus`` named ``"<node name>: rotation averaging"``, hardware_id
-= the node's fully qualified name): ``nodes``, ``measurements``, ``edges_received``,
-``edges_accepted``, ``edges_rejected``, one key per rejection reason (the adapters' reason
-strings, e.g. ``zero_quaternion``), ``default_weight_covariance``, ``clamped_weight``; after a
-solve ``solved_nodes``, ``solved_edges``, ``anchor``, ``components``, ``detached_components``,
-``filtered_outliers``, ``depth``, ``residual_{median,mean,max}_deg`` (inlier edges); and
-``last_solve_duration_s``, ``graph_version``, ``solved_version``, ``solves_completed``,
-``solves_failed``, ``timer_ticks_skipped_busy``, ``last_error``. Level: ERROR while the last
-solve raised; WARN for detached components, a median inlier residual above
-``residual_warn_deg`` or an ``anchor_frame`` not seen yet; OK otherwise.
-
-If the solver raises, the diagnostics turn ERROR with the exception text, the last good
-orientations are kept (nothing new is published) and edges keep being accepted; the graph is
-solved again once it changes. ``~/reset`` during a solve makes the node discard that result.
-
-Anchor and components
----------------------
-``anchor_frame`` fixes the gauge: that frame gets identity. Empty (default) means the first
-frame ever accepted (``header.frame_id`` of the first valid edge). If ``anchor_frame`` is set
-but not seen yet, nothing is solved (diagnostics WARN) until it appears. Components that are
-not connected to the anchor are solved on their own, each with its own anchor = identity, and
-are still published under ``world_frame``; their rotations are not related to the anchor
-component's. The diagnostics turn WARN and list them (``detached_components``), and the
-markers draw them in the ``detached_*`` namespaces with muted colours.
-
-Executors
----------
-The node works under ``SingleThreadedExecutor`` (what ``main`` uses), ``MultiThreadedExecutor``
-and ``rclpy.experimental.EventsExecutor``; it uses no guard conditions and no coroutine
-callbacks, which the EventsExecutor of Jazzy (rclpy 7.1) does not support.
-
-Both subscriptions and ``~/solve`` share one mutually exclusive callback group, the *ingest*
-group: edges are ingested one at a time, in arrival order per topic (this matters for
-``repeat_policy`` latest / first), and whichever callback holds the group may take edges straight
-from the subscriptions' queues, since no executor thread takes from them meanwhile:
-
-* A subscription callback ingests its message, then up to ``INGEST_BATCH`` more edges already
-  queued. The wait-set executors rebuild their wait set for every message they deliver
-  (several hundred microseconds in rclpy 7.1, a few times the cost of ingesting an edge);
-  taking the queued edges in the callback pays that once per batch when the node falls behind.
-* ``~/solve`` queues a solve on the worker and blocks until it is published, taking queued
-  edges in the meantime (polling every ``SOLVE_POLL_S``), so ingestion goes on during the wait
-  even on a single-threaded executor. On a single-threaded executor the timer and the other
-  services wait until the answer; on a ``MultiThreadedExecutor`` they run meanwhile.
-
-The timer and the other services use a reentrant group and coordinate through a lock.
+Conventions: ``R_i`` is world-to-node; an edge ``(i, j)`` carries ``R_ij ~= R_i R_j^T`` (a
+``TransformStamped`` with ``header.frame_id = i``, ``child_frame_id = j``); the node publishes
+node-to-world ``R_i^T`` with ``header.frame_id = world_frame``, ``child_frame_id = i``.
 """
 
 from __future__ import annotations

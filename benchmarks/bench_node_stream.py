@@ -30,7 +30,7 @@ What it does
 
 Usage (from the repository root)::
 
-    .venv/bin/python scripts/bench_node_stream.py --nodes 1000 --rate 2000 --edges 20000 \\
+    .venv/bin/python -m benchmarks.bench_node_stream --nodes 1000 --rate 2000 --edges 20000 \\
         --solve-period 1.0 --seed 0 --extra-node-args='-p iterations:=300'
 
 ``--extra-node-args`` is one string, split like a shell command line and appended after the
@@ -57,7 +57,6 @@ from typing import Any
 import numpy as np
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO_ROOT))
 
 from rotavg_ros.core.metrics import evaluate  # noqa: E402
 from rotavg_ros.core.so3 import matrix_to_quat, quat_to_matrix, random_rotations  # noqa: E402

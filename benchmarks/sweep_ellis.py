@@ -6,7 +6,7 @@ per sigma; every depth candidate, the Eq. 3 choice) over ``--seeds`` seeds, and 
 line per setting with the mean / median error against ground truth (worst and average over
 seeds), sorted by the worst-seed mean. The defaults are always the first setting.
 
-    python scripts/sweep_ellis.py --device cuda [--configs 100] [--seeds 0,1,2]
+    python -m benchmarks.sweep_ellis --device cuda [--configs 100] [--seeds 0,1,2]
 
 This is a search on the benchmark itself: a setting that wins here must also win over
 seeds (and on other data) before it becomes a default.
@@ -25,8 +25,8 @@ import numpy as np
 from benchmarks.datasets import load_ellis_island, shared_dir_or_say
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.metrics import evaluate
-from rotavg_ros.core.solver import average_rotations
 from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.solver import average_rotations
 
 SPACE: dict[str, list[Any]] = {
     "sigma": [0.15, 0.2, 0.25, 0.3],

@@ -6,7 +6,7 @@ prints filter time, per-depth fit time, iterations, ms per iteration and the err
 depth's rotations against the reference. Then it times the whole ``RotationAverager.solve``
 (candidates as the solver schedules them) ``--repeat`` times and prints each wall time.
 
-    python scripts/profile_phases.py [--graph ellis] [--device cpu|cuda] [--dtype float32]
+    python -m benchmarks.profile_phases [--graph ellis] [--device cpu|cuda] [--dtype float32]
 
 Needs the shared data (``../shared`` or ``$ROTAVG_SHARED``); exits with a message without it.
 """
@@ -25,8 +25,8 @@ from benchmarks.datasets import load_ellis_island, load_se_sync, shared_dir_or_s
 from rotavg_ros.core.dmf.fit import DMFSettings, fit_symmetric
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.metrics import evaluate
-from rotavg_ros.core.solver import RotationAverager, rotations_from_factor
 from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.solver import RotationAverager, rotations_from_factor
 
 
 def _sync(device: str) -> None:

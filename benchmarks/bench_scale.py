@@ -5,7 +5,7 @@ outliers) of each size in ``--sizes`` are solved with the default options, each 
 process so its peak RSS is its own. Prints one line per size: nodes, edges, solver mode,
 wall time, time per DMF iteration, peak RSS, mean / median error against the ground truth.
 
-    python scripts/bench_scale.py [--sizes 500,1000,2000,5000,10000] [--degree 20] [--device cpu]
+    python -m benchmarks.bench_scale [--sizes 500,1000,2000,5000,10000] [--degree 20] [--device cpu]
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ def _child(n: int, degree: float, seed: int, device: str, q: Any) -> None:
     from bench_warm_start import measure, synthetic_edges
 
     from rotavg_ros.core.metrics import evaluate
+    from rotavg_ros.core.options import SolverOptions
     from rotavg_ros.core.so3 import random_rotations
     from rotavg_ros.core.solver import RotationAverager
-    from rotavg_ros.core.options import SolverOptions
 
     rng = np.random.default_rng(seed)
     R = random_rotations(n, rng)

@@ -12,7 +12,7 @@
    edges. Algorithm 1 leaves exact priority ties open; ours fall back on input order, so
    this measures how much of the mean error that open choice decides.
 
-    python scripts/ellis_weak_nodes.py [--top 12] [--restore-seeds 0,1,2,3,4,5,6,7]
+    python -m benchmarks.ellis_weak_nodes [--top 12] [--restore-seeds 0,1,2,3,4,5,6,7]
                                        [--edge-orders 8]
 """
 
@@ -26,9 +26,9 @@ import numpy as np
 from benchmarks.datasets import Benchmark, load_ellis_island, shared_dir_or_say
 from rotavg_ros.core.filter.edge_filter import EdgeFilterResult, filter_edges
 from rotavg_ros.core.metrics import ErrorStats, evaluate
+from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.so3 import geodesic_distance
 from rotavg_ros.core.solver import RotationAverager, average_rotations
-from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.view_graph import EdgeArrays
 
 

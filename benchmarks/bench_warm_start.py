@@ -6,7 +6,7 @@ once cold and once warm-started from the first solution (``RotationAverager.solv
 initial=..., initial_depth=...)``, as the node does). Prints wall times, their ratio and the
 gauge-aligned errors against the ground truth.
 
-    python scripts/bench_warm_start.py [--nodes 2000] [--degree 20] [--grow 0.01] [--device cpu]
+    python -m benchmarks.bench_warm_start [--nodes 2000] [--degree 20] [--grow 0.01] [--device cpu]
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ import time
 import numpy as np
 
 from rotavg_ros.core.metrics import evaluate
-from rotavg_ros.core.so3 import random_rotations, rotation_about_axis
-from rotavg_ros.core.solver import RotationAverager
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.so3 import random_rotations, rotation_about_axis
+from rotavg_ros.core.solver import RotationAverager
 from rotavg_ros.core.view_graph import ViewGraph
 
 

@@ -37,7 +37,7 @@ its history is full (the script retries; ``--publish-timeout``).
 
 Usage (from the repository root)::
 
-    .venv/bin/python scripts/bench_node_stress.py --edges 100000
+    .venv/bin/python -m benchmarks.bench_node_stress --edges 100000
 
 Helpers (graph, ``/proc`` readings, diagnostics records, node launch) come from
 ``bench_node_stream.py``.
@@ -53,9 +53,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_node_stream import (  # noqa: E402
+from benchmarks.bench_node_stream import (
     NODE_NAME,
     DiagRecord,
     Observer,
@@ -73,7 +71,6 @@ from bench_node_stream import (  # noqa: E402
     wait_for_match,
     wait_node_idle,
 )
-
 from rotavg_ros.core.so3 import matrix_to_quat  # noqa: E402
 
 
