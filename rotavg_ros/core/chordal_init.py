@@ -12,14 +12,11 @@ random 1000-node graph (0.9 s against 0.2 s) and was never faster on the SE-Sync
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import splu
 
 from rotavg_ros.core.so3 import project_to_so3
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
+from rotavg_ros.core.types import FloatArray, IntArray
 
 
 def chordal_rotations(

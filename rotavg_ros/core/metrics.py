@@ -8,7 +8,8 @@ Conventions
 * ``Q`` minimises ``sum_i d(R_est_i, R_gt_i Q)`` with ``d`` the geodesic angle (L1): start
   from the chordal L2 solution ``Q0 = proj_SO3(sum_i R_gt_i^T R_est_i)`` and refine with
   Weiszfeld iterations for the geodesic median of the candidates ``C_i = R_gt_i^T R_est_i``.
-* Angles are computed with ``atan2`` on the log map, accurate down to ~1e-15 rad.
+* Angles are computed with ``atan2`` (:func:`~rotavg_ros.core.so3.rotation_angle`), accurate
+  down to ~1e-15 rad.
 """
 
 from __future__ import annotations
@@ -18,69 +19,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-from rotavg_ros.core.so3 import project_to_so3
-
-FloatArray = NDArray[np.float64]
-
-_NEAR_PI = 2.5  # above this angle the axis comes from the symmetric part of R
-
-
-# ------------------------------------------------------------ local SO(3) helpers
-def _vee_skew(R: FloatArray) -> FloatArray:
-    """``vee(R - R^T)`` = ``2 sin(theta) * axis``."""
-    return np.stack([R[..., 2, 1] - R[..., 1, 2],
-                     R[..., 0, 2] - R[..., 2, 0],
-                     R[..., 1, 0] - R[..., 0, 1]], axis=-1)
-
-
-def _rotation_angle(R: FloatArray) -> FloatArray:
-    """Angle of each rotation in ``[0, pi]`` via ``atan2`` (accurate near 0 and pi)."""
-    s = np.linalg.norm(_vee_skew(R), axis=-1) / 2.0
-    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.arctan2(s, c)
-
-
-def _so3_log(R: FloatArray) -> FloatArray:
-    """Rotation vectors ``(..., 3)`` with ``exp(hat(v)) = R``, ``|v| <= pi``."""
-    R = np.asarray(R, dtype=np.float64)
-    v = _vee_skew(R)
-    theta = _rotation_angle(R)
-    s = np.sin(theta)
-    small = theta < 1e-6
-    # theta / (2 sin theta), with its Taylor series near 0.
-    scale = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, s)))
-    out = scale[..., None] * v
-    near_pi = theta > _NEAR_PI
-    if np.any(near_pi):
-        Rp = R[near_pi]
-        th = theta[near_pi]
-        cos = np.cos(th)
-        # (R + R^T)/2 = cos I + (1 - cos) a a^T
-        S = (Rp + np.swapaxes(Rp, -1, -2)) / 2.0 - cos[:, None, None] * np.eye(3)
-        S /= (1.0 - cos)[:, None, None]
-        k = np.argmax(np.diagonal(S, axis1=-2, axis2=-1), axis=-1)
-        axis = S[np.arange(k.size), :, k]
-        axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-        sign = np.where(np.einsum("ka,ka->k", axis, v[near_pi]) < 0, -1.0, 1.0)
-        out[near_pi] = (sign * th)[:, None] * axis
-    return out
-
-
-def _so3_exp(v: FloatArray) -> FloatArray:
-    """Rodrigues' formula for rotation vectors ``(..., 3)``."""
-    v = np.asarray(v, dtype=np.float64)
-    theta = np.linalg.norm(v, axis=-1)
-    small = theta < 1e-6
-    t = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(t) / t)
-    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t**2)
-    K = np.zeros((*v.shape[:-1], 3, 3))
-    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
-    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
-    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
-    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
+from rotavg_ros.core.so3 import exp_map, log_map, project_to_so3, rotation_angle
+from rotavg_ros.core.types import FloatArray
 
 
 def _project(M: FloatArray) -> FloatArray:
@@ -112,10 +54,10 @@ def align_gauge(
     C = np.swapaxes(gt, -1, -2) @ est  # R_est_i ~= R_gt_i C_i
     Q = _project(C.sum(axis=0))
     for _ in range(max_iters):
-        V = _so3_log(Q.T @ C)
+        V = log_map(Q.T @ C)
         w = 1.0 / np.maximum(np.linalg.norm(V, axis=-1), 1e-12)
         step = (w[:, None] * V).sum(axis=0) / w.sum()
-        Q = _project(Q @ _so3_exp(step))
+        Q = _project(Q @ exp_map(step))
         if float(np.linalg.norm(step)) < tol:
             break
     return Q
@@ -127,7 +69,7 @@ def angular_errors_deg(R_est: ArrayLike, R_gt: ArrayLike, R_align: ArrayLike) ->
     gt = _as_stack(R_gt, "R_gt")
     Q = np.asarray(R_align, dtype=np.float64)
     diff = est @ np.swapaxes(gt @ Q, -1, -2)
-    return np.degrees(_rotation_angle(diff))
+    return np.degrees(rotation_angle(diff))
 
 
 @dataclass

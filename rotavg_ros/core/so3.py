@@ -12,9 +12,9 @@ Conventions
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-FloatArray = NDArray[np.float64]
+from rotavg_ros.core.types import FloatArray
 
 
 def quat_to_matrix(q: ArrayLike) -> FloatArray:
@@ -129,3 +129,61 @@ def rotation_about_axis(axis: ArrayLike, angle_rad: ArrayLike) -> FloatArray:
     half = np.asarray(angle_rad, dtype=np.float64)[..., None] / 2.0
     q = np.concatenate([axis * np.sin(half), np.cos(half)], axis=-1)
     return quat_to_matrix(q)
+
+
+_NEAR_PI = 2.5  # above this angle the axis comes from the symmetric part of R
+
+
+def _vee_skew(R: FloatArray) -> FloatArray:
+    """``vee(R - R^T)`` = ``2 sin(theta) * axis``."""
+    return np.stack([R[..., 2, 1] - R[..., 1, 2],
+                     R[..., 0, 2] - R[..., 2, 0],
+                     R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+
+
+def rotation_angle(R: FloatArray) -> FloatArray:
+    """Angle of each rotation in ``[0, pi]`` via ``atan2`` (accurate near 0 and pi)."""
+    s = np.linalg.norm(_vee_skew(R), axis=-1) / 2.0
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arctan2(s, c)
+
+
+def log_map(R: FloatArray) -> FloatArray:
+    """Rotation vectors ``(..., 3)`` with ``exp(hat(v)) = R``, ``|v| <= pi``."""
+    R = np.asarray(R, dtype=np.float64)
+    v = _vee_skew(R)
+    theta = rotation_angle(R)
+    s = np.sin(theta)
+    small = theta < 1e-6
+    # theta / (2 sin theta), with its Taylor series near 0.
+    scale = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, s)))
+    out = scale[..., None] * v
+    near_pi = theta > _NEAR_PI
+    if np.any(near_pi):
+        Rp = R[near_pi]
+        th = theta[near_pi]
+        cos = np.cos(th)
+        # (R + R^T)/2 = cos I + (1 - cos) a a^T
+        S = (Rp + np.swapaxes(Rp, -1, -2)) / 2.0 - cos[:, None, None] * np.eye(3)
+        S /= (1.0 - cos)[:, None, None]
+        k = np.argmax(np.diagonal(S, axis1=-2, axis2=-1), axis=-1)
+        axis = S[np.arange(k.size), :, k]
+        axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+        sign = np.where(np.einsum("ka,ka->k", axis, v[near_pi]) < 0, -1.0, 1.0)
+        out[near_pi] = (sign * th)[:, None] * axis
+    return out
+
+
+def exp_map(v: FloatArray) -> FloatArray:
+    """Rodrigues' formula for rotation vectors ``(..., 3)``."""
+    v = np.asarray(v, dtype=np.float64)
+    theta = np.linalg.norm(v, axis=-1)
+    small = theta < 1e-6
+    t = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(t) / t)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t**2)
+    K = np.zeros((*v.shape[:-1], 3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)

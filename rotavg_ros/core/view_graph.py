@@ -21,14 +21,11 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from rotavg_ros.core.so3 import project_to_so3
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
+from rotavg_ros.core.types import FloatArray, IntArray
 
 
 class RepeatPolicy(str, Enum):

@@ -25,13 +25,13 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from rotavg_ros.core.so3 import matrix_to_quat, quat_to_matrix
+from rotavg_ros.core.types import FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
 from rotavg_ros.errors import InputError
 
-FloatArray = NDArray[np.float64]
 PathLike = str | os.PathLike[str]
 
 VERTEX_TAG = "VERTEX_SE3:QUAT"
@@ -89,9 +89,9 @@ class EdgeLike(Protocol):
     """Anything with dense-index edge arrays (:class:`~rotavg_ros.core.view_graph.EdgeArrays`)."""
 
     @property
-    def i(self) -> NDArray[np.int64]: ...
+    def i(self) -> IntArray: ...
     @property
-    def j(self) -> NDArray[np.int64]: ...
+    def j(self) -> IntArray: ...
     @property
     def R(self) -> FloatArray: ...
     @property

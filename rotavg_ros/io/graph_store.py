@@ -24,22 +24,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from rotavg_ros.app.accumulator import EdgeMeasurement
+from rotavg_ros.core.types import FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
 from rotavg_ros.errors import InputError
 from rotavg_ros.io.g2o import read_g2o, write_g2o
 
-FloatArray = NDArray[np.float64]
 MAGIC = "# rotavg_ros graph v2"
 _MAGIC_V1 = "# rotavg_ros graph v1"
 
 
 @dataclass(frozen=True)
 class _Edges:
-    i: NDArray[np.int64]
-    j: NDArray[np.int64]
+    i: IntArray
+    j: IntArray
     R: FloatArray
     weight: FloatArray
 

@@ -23,14 +23,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
 from rotavg_ros.core.so3 import project_to_so3
+from rotavg_ros.core.types import FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
 from rotavg_ros.errors import InputError
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 PathLike = str | os.PathLike[str]
 
 ORTHOGONALITY_TOL = 1e-3

@@ -38,10 +38,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components, mini
 
 from rotavg_ros.core.filter.triangles import enumerate_triangles
 from rotavg_ros.core.so3 import chordal_distance
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
-BoolArray = NDArray[np.bool_]
+from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 
 @dataclass(frozen=True)
