@@ -32,7 +32,6 @@ from rosbags.typesys import Stores, get_typestore
 from rotavg_ros import cli
 from rotavg_ros.app.parameters import settings_from_parameters
 from rotavg_ros.app.session import default_solve
-from rotavg_ros.cli.progress import ProgressBar
 from rotavg_ros.core.so3 import (
     matrix_to_quat,
     quat_to_matrix,
@@ -44,6 +43,7 @@ from rotavg_ros.io.bag_messages import TRANSFORM_STAMPED, MessageFactory
 from rotavg_ros.io.g2o import g2o_id_mapping, read_g2o_vertices, write_g2o_with_mapping
 from rotavg_ros.replay import EXIT_INPUT, EXIT_NOTHING_USABLE, EXIT_OK, ReplayConfig, run_replay
 from rotavg_ros.replay.config import ODOMETRY
+from rotavg_ros.replay.progress import ProgressBar
 
 REPO = Path(__file__).resolve().parents[1]
 T0 = 1_000 * 1_000_000_000

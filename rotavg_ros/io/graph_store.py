@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from rotavg_ros.app.accumulator import EdgeMeasurement
+from rotavg_ros.core.measurement import EdgeMeasurement
 from rotavg_ros.core.types import FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
 from rotavg_ros.errors import InputError

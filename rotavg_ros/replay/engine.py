@@ -63,7 +63,6 @@ from rotavg_ros.app.session import (
     WarmStart,
     solve_snapshot,
 )
-from rotavg_ros.cli.progress import ProgressBar, isatty
 from rotavg_ros.core.measurement import EdgeMeasurement, Rejection
 from rotavg_ros.core.metrics import ErrorStats, evaluate
 from rotavg_ros.core.result import SolveResult
@@ -85,6 +84,7 @@ from rotavg_ros.replay.config import (
     UNDECODABLE,
     ReplayConfig,
 )
+from rotavg_ros.replay.progress import ProgressBar, isatty
 from rotavg_ros.replay.report import ReplayReport, SolveRecord, TopicRole, TopicStats
 
 

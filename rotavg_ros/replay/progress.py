@@ -1,4 +1,4 @@
-"""A one-line progress bar for terminal output (the replay's message count)."""
+"""The replay's one-line progress bar on a terminal (messages read so far)."""
 
 from __future__ import annotations
 
