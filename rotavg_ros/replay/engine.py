@@ -72,6 +72,7 @@ from rotavg_ros.io.bag_messages import TF_MESSAGE, TRANSFORM_STAMPED, MessageFac
 from rotavg_ros.io.bag_reader import BagError, BagRecord, BagSource, DecodeError, open_bag
 from rotavg_ros.io.bag_writer import OutputBag
 from rotavg_ros.io.g2o import write_g2o_with_mapping
+from rotavg_ros.msg_adapters import outputs
 from rotavg_ros.msg_adapters.inputs import edge_from_odometry, edge_from_transform
 from rotavg_ros.replay.config import (
     DEFAULT_GT_TOPIC,
@@ -325,21 +326,22 @@ class Replayer:
             assert result is not None
             self.report.final = result
             if w is not None:
-                transforms = self.factory.orientation_transforms(
-                    result.node_ids, result.rotations, settings.world_frame, stamp_ns)
+                transforms = outputs.orientation_transforms(
+                    self.factory, result.node_ids, result.rotations, settings.world_frame,
+                    stamp_ns)
                 for msg in transforms:
                     w.write("orientations", msg, stamp_ns)
-                w.write("tf", self.factory.tf_message(transforms), stamp_ns)
+                w.write("tf", outputs.tf_message(self.factory, transforms), stamp_ns)
                 if settings.publish_markers:
-                    w.write("markers", self.factory.orientation_markers(
-                        result.node_ids, result.rotations, result.component, result.anchors,
-                        settings.world_frame, stamp_ns, spacing=settings.marker_spacing),
-                        stamp_ns)
+                    w.write("markers", outputs.orientation_markers(
+                        self.factory, result.node_ids, result.rotations, result.component,
+                        result.anchors, settings.world_frame, stamp_ns,
+                        spacing=settings.marker_spacing), stamp_ns)
             if self.report.gt:
                 record.errors = _score(result, self.report.gt)
         elif attempt.status == NO_EDGES and w is not None and settings.publish_markers:
-            w.write("markers", self.factory.clear_markers(settings.world_frame, stamp_ns),
-                    stamp_ns)
+            w.write("markers", outputs.clear_markers(self.factory, settings.world_frame,
+                                                     stamp_ns), stamp_ns)
         self._write_diagnostics(stamp_ns)
         self._announce(record)
 
@@ -349,9 +351,11 @@ class Replayer:
         if self.writer is None:
             return
         level, message, values = diagnostic_values(stats, self.book, self.settings)
-        self.writer.write("diagnostics", self.factory.diagnostic_array(
-            diagnostic_name(self.config.node_name), level, message, values,
-            self.node_fqn, stamp_ns), stamp_ns)
+        status = outputs.diagnostic_status(
+            self.factory, diagnostic_name(self.config.node_name), level, message, values,
+            self.node_fqn)
+        self.writer.write("diagnostics", outputs.diagnostic_array(self.factory, [status],
+                                                                  stamp_ns), stamp_ns)
 
     def _announce(self, record: SolveRecord) -> None:
         if self.config.quiet:

@@ -1,24 +1,21 @@
-"""Solve results out: TF-ready transforms, RViz markers and diagnostics (rclpy messages).
+"""rclpy back-end of the output builder: what ``rotavg_node`` publishes.
 
-Conventions
------------
-The solver returns **world-to-node** rotations ``R_i`` (``x_node = R_i x_world``). The node
-publishes the **node-to-world** rotation ``R_i^T`` as a ``geometry_msgs/msg/TransformStamped``
-with ``header.frame_id = world_frame`` and ``child_frame_id = <node id>``, i.e. the orientation
-of the node's frame expressed in the world frame, which is what tf2 expects. Translations are
-zero (the graph has none).
+:class:`RclpyMessageFactory` implements :class:`rotavg_ros.msg_adapters.outputs.MessageFactory`
+with rclpy messages; the builders of :mod:`rotavg_ros.msg_adapters.outputs` decide every
+field, so these messages serialize to the same CDR bytes as the rosbags ones that
+``rotavg replay`` writes (:mod:`rotavg_ros.io.bag_messages`). The functions below are those
+builders bound to this back-end, stamped with an rclpy ``builtin_interfaces/Time`` (what the
+node's clock gives).
 
-Components not connected to the anchor are solved on their own and have their own anchor set
-to identity; their rotations are *not* comparable with the anchor component's. They are still
-published under ``world_frame`` (tf2 consumers must check the diagnostics); in the markers they
-are drawn in the ``detached_*`` namespaces with muted colours, laid out to the right of the
-anchor component.
+Conventions: the solver returns world-to-node rotations ``R_i``; the outputs carry the
+node-to-world rotation ``R_i^T`` (``header.frame_id = world_frame``,
+``child_frame_id = <node id>``), the orientation of the node's frame in the world frame, as
+tf2 expects. Components not connected to the anchor are solved on their own (their anchor is
+the identity): still published under ``world_frame`` (consumers must check the diagnostics),
+drawn in the ``detached_*`` marker namespaces.
 
-Only this package (``msg_adapters``) imports ROS message modules; ``rotavg_ros``' solver
-modules stay ROS-free. The message-independent helpers (:func:`grid_layout`,
-:func:`node_to_world_quaternions`, :func:`format_diagnostic_value`, :class:`Level`) live in
-:mod:`rotavg_ros.pipeline`, shared with the rosbags builders of :mod:`rotavg_ros.io.bag_messages`,
-and are re-exported here.
+``tf2_msgs`` is imported only by :meth:`RclpyMessageFactory.tf_message` (the node publishes
+no ``/tf``, and the pinned environment does not install it).
 """
 
 from __future__ import annotations
@@ -26,27 +23,37 @@ from __future__ import annotations
 from collections.abc import Hashable, Mapping, Sequence
 from typing import Any
 
-import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, TransformStamped
-from numpy.typing import NDArray
-from std_msgs.msg import ColorRGBA
+from geometry_msgs.msg import Point, Pose, Quaternion, Transform, TransformStamped, Vector3
+from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from rotavg_ros.core.types import FloatArray, IntArray
+from rotavg_ros.msg_adapters import outputs
 from rotavg_ros.msg_adapters.outputs import (
+    NS_AXES,
+    NS_DETACHED_AXES,
+    NS_DETACHED_LABELS,
+    NS_LABELS,
     Level,
+    MarkerSpec,
+    Quat,
+    Rgba,
+    Vec3,
     format_diagnostic_value,
     grid_layout,
     node_to_world_quaternions,
 )
 
 __all__ = [
+    "FACTORY",
     "NS_AXES",
     "NS_DETACHED_AXES",
     "NS_DETACHED_LABELS",
     "NS_LABELS",
     "Level",
+    "RclpyMessageFactory",
     "clear_markers",
     "diagnostic_array",
     "diagnostic_status",
@@ -56,42 +63,80 @@ __all__ = [
     "node_to_world_quaternions",
     "orientation_markers",
     "orientation_transforms",
+    "stamp_ns",
 ]
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
-NS_AXES = "orientations"
-NS_LABELS = "labels"
-NS_DETACHED_AXES = "detached_orientations"
-NS_DETACHED_LABELS = "detached_labels"
+def _quaternion(q: Quat) -> Quaternion:
+    return Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])
 
 
-def orientation_transforms(
-    node_ids: Sequence[Hashable],
-    rotations: FloatArray,
-    world_frame: str,
-    stamp: Time,
-) -> list[TransformStamped]:
-    """One ``TransformStamped`` per node: ``world_frame -> node id`` with rotation ``R_i^T``."""
-    quats = node_to_world_quaternions(rotations)
-    out: list[TransformStamped] = []
-    for node_id, q in zip(node_ids, quats, strict=True):
-        msg = TransformStamped()
-        msg.header.stamp = stamp
-        msg.header.frame_id = world_frame
-        msg.child_frame_id = str(node_id)
-        rot = msg.transform.rotation
-        rot.x, rot.y, rot.z, rot.w = (float(v) for v in q)
-        out.append(msg)
-    return out
+def _point(p: Vec3) -> Point:
+    return Point(x=p[0], y=p[1], z=p[2])
 
 
-def _color(r: float, g: float, b: float, a: float = 1.0) -> ColorRGBA:
-    return ColorRGBA(r=float(r), g=float(g), b=float(b), a=float(a))
+def _color(c: Rgba) -> ColorRGBA:
+    return ColorRGBA(r=c[0], g=c[1], b=c[2], a=c[3])
 
 
-_AXIS_RGB = ((1.0, 0.0, 0.0), (0.0, 0.8, 0.0), (0.0, 0.3, 1.0))
+class RclpyMessageFactory:
+    """The output builder's rclpy back-end (stateless; use :data:`FACTORY`)."""
+
+    def header(self, frame_id: str, stamp_ns: int) -> Header:
+        sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        return Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+    def transform_stamped(self, header: Header, child_frame_id: str,
+                          rotation: Quat) -> TransformStamped:
+        return TransformStamped(header=header, child_frame_id=child_frame_id,
+                                transform=Transform(rotation=_quaternion(rotation)))
+
+    def tf_message(self, transforms: Sequence[TransformStamped]) -> Any:
+        from tf2_msgs.msg import TFMessage  # not in the pinned environment; see the docstring
+
+        return TFMessage(transforms=list(transforms))
+
+    def marker(self, header: Header, spec: MarkerSpec) -> Marker:
+        return Marker(
+            header=header, ns=spec.ns, id=spec.id, type=spec.type, action=spec.action,
+            pose=Pose(position=_point(spec.position),
+                      orientation=_quaternion(spec.orientation)),
+            scale=Vector3(x=spec.scale[0], y=spec.scale[1], z=spec.scale[2]),
+            color=_color(spec.color),
+            points=[_point(p) for p in spec.points],
+            colors=[_color(c) for c in spec.colors],
+            text=spec.text,
+        )
+
+    def marker_array(self, markers: Sequence[Marker]) -> MarkerArray:
+        return MarkerArray(markers=list(markers))
+
+    def diagnostic_status(self, level: int, name: str, message: str, hardware_id: str,
+                          values: Sequence[tuple[str, str]]) -> DiagnosticStatus:
+        return DiagnosticStatus(
+            level=bytes([level]), name=name, message=message, hardware_id=hardware_id,
+            values=[KeyValue(key=k, value=v) for k, v in values],
+        )
+
+    def diagnostic_array(self, header: Header,
+                         statuses: Sequence[DiagnosticStatus]) -> DiagnosticArray:
+        return DiagnosticArray(header=header, status=list(statuses))
+
+
+FACTORY = RclpyMessageFactory()
+
+
+def stamp_ns(stamp: Time) -> int:
+    """Nanoseconds of an rclpy ``Time`` message (the builders' stamp)."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+# ---------------------------------------------------------------------- bound builders
+def orientation_transforms(node_ids: Sequence[Hashable], rotations: FloatArray,
+                           world_frame: str, stamp: Time) -> list[TransformStamped]:
+    """:func:`rotavg_ros.msg_adapters.outputs.orientation_transforms` as rclpy messages."""
+    return outputs.orientation_transforms(FACTORY, node_ids, rotations, world_frame,
+                                          stamp_ns(stamp))
 
 
 def orientation_markers(
@@ -104,113 +149,25 @@ def orientation_markers(
     spacing: float = 1.0,
     axis_length: float = 0.35,
 ) -> MarkerArray:
-    """RViz markers: a ``DELETEALL`` first, then per node an axes triad and a text label.
-
-    * The triad is a ``LINE_LIST`` marker whose pose has the node-to-world orientation
-      ``R_i^T``, with its x/y/z axes red/green/blue; it sits at :func:`grid_layout`'s position
-      (there are no translations to show).
-    * The label is a ``TEXT_VIEW_FACING`` marker with the node id, above the triad; the anchor
-      of each component is labelled ``"<id> (anchor)"``.
-    * Anchor component: namespaces ``orientations`` / ``labels``, white labels, opaque axes.
-      Other components: ``detached_orientations`` / ``detached_labels``, orange labels,
-      half-transparent muted axes.
-
-    Marker ids are the dense node indices, unique inside each namespace.
-    """
-    comp = np.asarray(component, dtype=np.int64).reshape(-1)
-    quats = node_to_world_quaternions(rotations)
-    pos = grid_layout(comp, spacing)
-    anchor_set = {str(a) for a in anchors}
-    array = MarkerArray()
-    clear = Marker()
-    clear.header.stamp = stamp
-    clear.header.frame_id = world_frame
-    clear.action = Marker.DELETEALL
-    array.markers.append(clear)
-    for k, node_id in enumerate(node_ids):
-        detached = bool(comp[k] != 0)
-        name = str(node_id)
-        axes = Marker()
-        axes.header.stamp = stamp
-        axes.header.frame_id = world_frame
-        axes.ns = NS_DETACHED_AXES if detached else NS_AXES
-        axes.id = k
-        axes.type = Marker.LINE_LIST
-        axes.action = Marker.ADD
-        axes.pose.position.x, axes.pose.position.y, axes.pose.position.z = (
-            float(v) for v in pos[k]
-        )
-        o = axes.pose.orientation
-        o.x, o.y, o.z, o.w = (float(v) for v in quats[k])
-        axes.scale.x = 0.03  # line width
-        alpha = 0.5 if detached else 1.0
-        shade = 0.6 if detached else 1.0
-        for axis, rgb in enumerate(_AXIS_RGB):
-            tip = [0.0, 0.0, 0.0]
-            tip[axis] = axis_length
-            axes.points.append(Point(x=0.0, y=0.0, z=0.0))
-            axes.points.append(Point(x=tip[0], y=tip[1], z=tip[2]))
-            c = _color(shade * rgb[0], shade * rgb[1], shade * rgb[2], alpha)
-            axes.colors.extend([c, c])
-        axes.color = _color(1.0, 1.0, 1.0, alpha)
-        array.markers.append(axes)
-
-        label = Marker()
-        label.header.stamp = stamp
-        label.header.frame_id = world_frame
-        label.ns = NS_DETACHED_LABELS if detached else NS_LABELS
-        label.id = k
-        label.type = Marker.TEXT_VIEW_FACING
-        label.action = Marker.ADD
-        label.pose.position.x = float(pos[k, 0])
-        label.pose.position.y = float(pos[k, 1])
-        label.pose.position.z = float(pos[k, 2]) + axis_length + 0.15
-        label.pose.orientation.w = 1.0
-        label.scale.z = 0.15  # text height
-        label.color = _color(1.0, 0.55, 0.0) if detached else _color(1.0, 1.0, 1.0)
-        label.text = f"{name} (anchor)" if name in anchor_set else name
-        array.markers.append(label)
-    return array
+    """:func:`rotavg_ros.msg_adapters.outputs.orientation_markers` as rclpy messages."""
+    return outputs.orientation_markers(FACTORY, node_ids, rotations, component, anchors,
+                                       world_frame, stamp_ns(stamp), spacing, axis_length)
 
 
 def clear_markers(world_frame: str, stamp: Time) -> MarkerArray:
-    """A ``MarkerArray`` holding only ``DELETEALL`` (after a reset)."""
-    clear = Marker()
-    clear.header.stamp = stamp
-    clear.header.frame_id = world_frame
-    clear.action = Marker.DELETEALL
-    return MarkerArray(markers=[clear])
+    """:func:`rotavg_ros.msg_adapters.outputs.clear_markers` as rclpy messages."""
+    return outputs.clear_markers(FACTORY, world_frame, stamp_ns(stamp))
 
 
-def diagnostic_status(
-    name: str,
-    level: Level | int,
-    message: str,
-    values: Mapping[str, Any],
-    hardware_id: str = "",
-) -> DiagnosticStatus:
-    """One ``DiagnosticStatus``; every entry of ``values`` becomes a ``KeyValue`` (in order).
-
-    Floats are formatted with 6 significant digits, booleans as ``true``/``false``, lists as
-    comma-separated values.
-    """
-    status = DiagnosticStatus()
-    status.level = bytes([int(level)])
-    status.name = name
-    status.message = message
-    status.hardware_id = hardware_id
-    status.values = [
-        KeyValue(key=str(k), value=format_diagnostic_value(v)) for k, v in values.items()
-    ]
-    return status
+def diagnostic_status(name: str, level: Level | int, message: str, values: Mapping[str, Any],
+                      hardware_id: str = "") -> DiagnosticStatus:
+    """:func:`rotavg_ros.msg_adapters.outputs.diagnostic_status` as an rclpy message."""
+    return outputs.diagnostic_status(FACTORY, name, level, message, values, hardware_id)
 
 
 def diagnostic_array(statuses: Sequence[DiagnosticStatus], stamp: Time) -> DiagnosticArray:
-    """Wrap statuses into a stamped ``DiagnosticArray``."""
-    array = DiagnosticArray()
-    array.header.stamp = stamp
-    array.status = list(statuses)
-    return array
+    """:func:`rotavg_ros.msg_adapters.outputs.diagnostic_array` as an rclpy message."""
+    return outputs.diagnostic_array(FACTORY, statuses, stamp_ns(stamp))
 
 
 def diagnostic_values(array: DiagnosticArray, name: str | None = None) -> dict[str, str]:
