@@ -31,8 +31,8 @@ def _child(n: int, degree: float, seed: int, device: str, q: Any) -> None:
     R = random_rotations(n, rng)
     g = measure(R, synthetic_edges(n, degree, rng), np.random.default_rng(seed + 1), 2.0, 0.1)
     marks: list[tuple[float, str]] = []
-    opts = SolverOptions(seed=seed, device=device,
-                         progress=lambda s: marks.append((time.perf_counter(), s)))
+    opts = SolverOptions.from_flat(seed=seed, device=device,
+                                   progress=lambda s: marks.append((time.perf_counter(), s)))
     averager = RotationAverager(opts)
     t0 = time.perf_counter()
     res = averager.solve(g)

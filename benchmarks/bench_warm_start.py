@@ -73,7 +73,7 @@ def main() -> None:
     pairs = synthetic_edges(args.nodes, args.degree, rng)
     cut = int(len(pairs) / (1.0 + args.grow))
     gt = dict(enumerate(R))
-    averager = RotationAverager(SolverOptions(seed=args.seed, device=args.device))
+    averager = RotationAverager(SolverOptions.from_flat(seed=args.seed, device=args.device))
     g0 = measure(R, pairs[:cut], np.random.default_rng(1), 2.0, 0.1)
     g1 = measure(R, pairs, np.random.default_rng(1), 2.0, 0.1)  # same first `cut` edges
     r0, t0 = timed(averager, g0)

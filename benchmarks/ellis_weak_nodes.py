@@ -44,11 +44,11 @@ def main() -> int:
     if shared is None:
         return 0
     bench = load_ellis_island(shared)
-    opt = SolverOptions(device=args.device)
+    opt = SolverOptions.from_flat(device=args.device)
     e = bench.graph.edge_arrays()
     w = e.weight / np.mean(e.weight)
-    base = filter_edges(e.i, e.j, e.R, w, bench.graph.num_nodes, opt.sigma,
-                        opt.use_support_count, opt.sigma_untested)
+    base = filter_edges(e.i, e.j, e.R, w, bench.graph.num_nodes, opt.filter.sigma,
+                        opt.filter.use_support_count, opt.filter.sigma_untested)
     print_worst_cameras(bench, opt, args.top)
     print_tied_tree_edges(bench, base)
     if args.restore_seeds:
@@ -107,8 +107,8 @@ def solve_kept(bench: Benchmark, mask: np.ndarray, seed: int, device: str) -> Er
     """Solve the edges in ``mask`` (already filtered) and score against the ground truth."""
     e, n = bench.graph.edge_arrays(), bench.graph.num_nodes
     w = e.weight / np.mean(e.weight)
-    o = SolverOptions(device=device, seed=seed, use_filter=False)
-    rot = average_rotations(n, e.i[mask], e.j[mask], e.R[mask], w[mask], o)[0]
+    o = SolverOptions.from_flat(device=device, seed=seed, use_filter=False)
+    rot = average_rotations(n, e.i[mask], e.j[mask], e.R[mask], w[mask], o).rotations
     return evaluate(dict(zip(bench.graph.node_ids, rot, strict=True)), bench.reference)
 
 
@@ -137,15 +137,15 @@ def shuffle_edge_orders(bench: Benchmark, orders: int, device: str) -> None:
     """Filter on randomly permuted input edges (ties then fall differently), solve, score."""
     e, n = bench.graph.edge_arrays(), bench.graph.num_nodes
     w = e.weight / np.mean(e.weight)
-    opt = SolverOptions(device=device)
+    opt = SolverOptions.from_flat(device=device)
     cams = list(bench.reference.keys())
     watch = [c for c in (23, 211, 224) if c in cams]
     print("\ninput edge order -> filter -> solve (seed 0):")
     means = []
     for k in range(orders + 1):
         perm = np.arange(e.i.size) if k == 0 else np.random.default_rng(k).permutation(e.i.size)
-        f = filter_edges(e.i[perm], e.j[perm], e.R[perm], w[perm], n, opt.sigma,
-                         opt.use_support_count, opt.sigma_untested)
+        f = filter_edges(e.i[perm], e.j[perm], e.R[perm], w[perm], n, opt.filter.sigma,
+                         opt.filter.use_support_count, opt.filter.sigma_untested)
         kept = np.empty_like(f.kept)
         kept[perm] = f.kept
         st = solve_kept(bench, kept, 0, device)

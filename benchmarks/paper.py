@@ -20,7 +20,7 @@ import multiprocessing as mp
 import resource
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +73,7 @@ def _peak_rss_mb() -> float:
 def _run_ours(shared: Path, name: str, overrides: dict[str, Any], q: Any) -> None:
     try:
         bench = load(shared, name)
-        options = replace(SolverOptions(), **overrides)
+        options = SolverOptions.from_flat(**overrides)
         t0 = time.perf_counter()
         result = RotationAverager(options).solve(bench.graph)
         wall = time.perf_counter() - t0

@@ -16,13 +16,12 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import replace
 
 import numpy as np
 import torch
 
 from benchmarks.datasets import load_ellis_island, load_se_sync, shared_dir_or_say
-from rotavg_ros.core.dmf.fit import DMFSettings, fit_symmetric
+from rotavg_ros.core.dmf import FitSpec, fit_symmetric
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
@@ -39,7 +38,7 @@ def main() -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--graph", default="ellis")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--dtype", default=SolverOptions().dtype)
+    p.add_argument("--dtype", default=SolverOptions().dense.dtype)
     p.add_argument("--repeat", type=int, default=2)
     p.add_argument("--no-cuda-graphs", action="store_true",
                    help="CUDA: launch every kernel from Python, one candidate at a time")
@@ -49,30 +48,28 @@ def main() -> int:
         return 0
     bench = load_ellis_island(shared) if args.graph == "ellis" else load_se_sync(shared,
                                                                                  args.graph)
-    opt = replace(SolverOptions(), device=args.device, dtype=args.dtype,
-                  cuda_graphs=not args.no_cuda_graphs)
+    opt = SolverOptions.from_flat(device=args.device, dtype=args.dtype,
+                                  cuda_graphs=not args.no_cuda_graphs)
     e = bench.graph.edge_arrays()
     n = bench.graph.num_nodes
     w = e.weight / np.mean(e.weight)
     print(f"{bench.name}: {n} nodes, {e.num_edges} edges, device {args.device}, "
-          f"dtype {args.dtype}, CUDA graphs {opt.cuda_graphs}, torch {torch.__version__}, "
-          f"threads {torch.get_num_threads()}")
+          f"dtype {args.dtype}, CUDA graphs {opt.runtime.cuda_graphs}, "
+          f"torch {torch.__version__}, threads {torch.get_num_threads()}")
     if args.device.startswith("cuda"):
         print(f"gpu: {torch.cuda.get_device_name()}")
     t0 = time.perf_counter()
-    filt = filter_edges(e.i, e.j, e.R, w, n, opt.sigma, opt.use_support_count,
-                        opt.sigma_untested)
+    filt = filter_edges(e.i, e.j, e.R, w, n, opt.filter.sigma, opt.filter.use_support_count,
+                        opt.filter.sigma_untested)
     print(f"filter: {time.perf_counter() - t0:.3f} s ({filt.num_removed} removed)")
     k = filt.kept
-    width = 3 * n if n <= opt.max_full_width_nodes else opt.scalable_width
-    for depth in opt.depths:
-        s = DMFSettings(depth=depth, hidden_width=width, iterations=opt.iterations, lr=opt.lr,
-                        reweight_every=opt.reweight_every, warmup=opt.warmup,
-                        init_scale=opt.init_scale, seed=opt.seed + depth, device=args.device,
-                        tolerance=opt.tolerance, dtype=opt.dtype, cuda_graph=opt.cuda_graphs)
+    width = 3 * n if n <= opt.dense.max_full_width_nodes else opt.dense.scalable_width
+    for depth in opt.dense.depths:
+        spec = FitSpec(depth=depth, hidden_width=width, seed=opt.runtime.seed + depth,
+                       device=args.device, cuda_graph=opt.runtime.cuda_graphs)
         _sync(args.device)
         t0 = time.perf_counter()
-        fit = fit_symmetric(n, e.i[k], e.j[k], e.R[k], w[k], s)
+        fit = fit_symmetric(n, e.i[k], e.j[k], e.R[k], w[k], opt.dense, spec)
         _sync(args.device)
         dt = time.perf_counter() - t0
         rot = rotations_from_factor(fit.H)

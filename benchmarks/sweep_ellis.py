@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -54,7 +53,7 @@ def main() -> int:
     e = bench.graph.edge_arrays()
     n = bench.graph.num_nodes
     w = e.weight / np.mean(e.weight)
-    base = replace(SolverOptions(), device=args.device)
+    base = SolverOptions.from_flat(device=args.device)
     rng = np.random.default_rng(args.sample_seed)
     configs = [{k: getattr(base, k) for k in SPACE}]
     while len(configs) < args.configs:
@@ -68,12 +67,13 @@ def main() -> int:
     for c in configs:
         sig = c["sigma"]
         if sig not in filters:
-            filters[sig] = filter_edges(e.i, e.j, e.R, w, n, sig, True, base.sigma_untested).kept
+            filters[sig] = filter_edges(e.i, e.j, e.R, w, n, sig, True,
+                                        base.filter.sigma_untested).kept
         k = filters[sig]
         means, medians = [], []
         for seed in seeds:
-            opt = replace(base, seed=seed, use_filter=False, **c)  # filtered above
-            rot = average_rotations(n, e.i[k], e.j[k], e.R[k], w[k], opt)[0]
+            opt = base.replace_flat(seed=seed, use_filter=False, **c)  # filtered above
+            rot = average_rotations(n, e.i[k], e.j[k], e.R[k], w[k], opt).rotations
             st = evaluate(dict(zip(bench.graph.node_ids, rot, strict=True)), bench.reference)
             means.append(st.mean_deg)
             medians.append(st.median_deg)

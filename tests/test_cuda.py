@@ -7,17 +7,16 @@ GPU result with ground truth or with the CPU result of the same seed.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from itertools import combinations
 
 import numpy as np
 import pytest
 import torch
 
-from rotavg_ros.core.dmf.fit import DMFSettings, fit_symmetric
+from rotavg_ros.core.dmf import FitSpec, fit_symmetric
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.optim.step_graph import StepGraph
-from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.so3 import random_rotations, rotation_about_axis
 from rotavg_ros.core.solver import RotationAverager, average_rotations, rotations_from_factor
 from rotavg_ros.core.view_graph import ViewGraph
@@ -26,7 +25,7 @@ pytestmark = pytest.mark.skipif(
     not torch.cuda.is_available(),
     reason="no CUDA device: the CUDA path is checked on a GPU machine (see README)")
 
-GPU = SolverOptions(device="cuda", depths=(2, 4), iterations=1000)
+GPU = SolverOptions.from_flat(device="cuda", depths=(2, 4), iterations=1000)
 
 
 def _graph(n: int, p: float, noise_deg: float, outliers: float, seed: int,
@@ -55,14 +54,14 @@ def _stats(res, R):  # type: ignore[no-untyped-def]
 
 def test_dense_exact_recovery_on_gpu() -> None:
     g, R = _graph(40, 0.4, 0.0, 0.0, seed=1)
-    res = RotationAverager(replace(GPU, dtype="float64")).solve(g)
+    res = RotationAverager(GPU.replace_flat(dtype="float64")).solve(g)
     assert _stats(res, R).max_deg < 0.01
 
 
 def test_dense_gpu_matches_cpu_with_noise_and_outliers() -> None:
     g, R = _graph(60, 0.3, 2.0, 0.15, seed=2)
     gpu = _stats(RotationAverager(GPU).solve(g), R)
-    cpu = _stats(RotationAverager(replace(GPU, device="cpu")).solve(g), R)
+    cpu = _stats(RotationAverager(GPU.replace_flat(device="cpu")).solve(g), R)
     assert gpu.mean_deg < 1.5
     assert abs(gpu.mean_deg - cpu.mean_deg) < 0.05
     assert abs(gpu.median_deg - cpu.median_deg) < 0.05
@@ -70,9 +69,9 @@ def test_dense_gpu_matches_cpu_with_noise_and_outliers() -> None:
 
 def test_sparse_mode_on_gpu() -> None:
     g, R = _graph(200, 0.0, 1.0, 0.0, seed=3, chain=True)
-    opt = replace(GPU, mode="sparse")
+    opt = GPU.replace_flat(mode="sparse")
     gpu = _stats(RotationAverager(opt).solve(g), R)
-    cpu = _stats(RotationAverager(replace(opt, device="cpu")).solve(g), R)
+    cpu = _stats(RotationAverager(opt.replace_flat(device="cpu")).solve(g), R)
     assert gpu.median_deg < 2.0
     assert abs(gpu.median_deg - cpu.median_deg) < 0.01
 
@@ -88,7 +87,7 @@ def test_warm_resolve_on_gpu() -> None:
 
 def test_vanilla_ablation_on_gpu() -> None:
     g, R = _graph(30, 0.5, 0.0, 0.0, seed=5)
-    opt = replace(GPU, depths=(2,), explicit_constraint=False, use_filter=False)
+    opt = GPU.replace_flat(depths=(2,), explicit_constraint=False, use_filter=False)
     assert _stats(RotationAverager(opt).solve(g), R).median_deg < 0.5
 
 
@@ -96,8 +95,8 @@ def test_auto_device_picks_cuda() -> None:
     g, _ = _graph(20, 0.5, 0.0, 0.0, seed=6)
     e = g.edge_arrays()
     out = average_rotations(g.num_nodes, e.i, e.j, e.R, e.weight,
-                            replace(GPU, device="auto", depths=(2,), iterations=200))
-    assert np.all(np.isfinite(out[0]))
+                            GPU.replace_flat(device="auto", depths=(2,), iterations=200))
+    assert np.all(np.isfinite(out.rotations))
 
 
 def test_step_graph_records_once_and_replays_with_new_inputs() -> None:
@@ -141,9 +140,11 @@ def test_graphed_dense_fit_records_once_and_recovers_exactly(
     monkeypatch.setattr(StepGraph, "_record", counting)
     g, R = _graph(30, 0.5, 0.0, 0.0, seed=9)
     e = g.edge_arrays()
-    s = DMFSettings(depth=4, hidden_width=90, iterations=1000, tolerance=0.0,
-                    device="cuda", dtype="float64", cuda_graph=True)
-    fit = fit_symmetric(g.num_nodes, e.i, e.j, e.R, e.weight, s)
+    # The settings DMFSettings(iterations=1000, tolerance=0.0, dtype="float64") gave.
+    s = DenseFitOptions(iterations=1000, tolerance=0.0, dtype="float64", reweight_every=100,
+                        warmup=500)
+    spec = FitSpec(depth=4, hidden_width=90, seed=0, device="cuda", cuda_graph=True)
+    fit = fit_symmetric(g.num_nodes, e.i, e.j, e.R, e.weight, s, spec)
     assert recorded == [1]
     rot = rotations_from_factor(fit.H)
     est = {k: rot[x] for x, k in enumerate(g.node_ids)}
@@ -153,7 +154,7 @@ def test_graphed_dense_fit_records_once_and_recovers_exactly(
 def test_cuda_graphs_and_parallel_candidates_match_eager_launches() -> None:
     g, R = _graph(60, 0.3, 2.0, 0.15, seed=7)
     graphed = RotationAverager(GPU).solve(g)
-    eager = RotationAverager(replace(GPU, cuda_graphs=False)).solve(g)
+    eager = RotationAverager(GPU.replace_flat(cuda_graphs=False)).solve(g)
     a, b = _stats(graphed, R), _stats(eager, R)
     assert abs(a.mean_deg - b.mean_deg) < 0.02
     assert abs(a.median_deg - b.median_deg) < 0.02

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from rotavg_ros.core.dmf.fit import DMFSettings, factor_shapes, fit_symmetric
+from rotavg_ros.core.dmf import FitSpec, factor_shapes, fit_symmetric
 from rotavg_ros.core.optim.factor_chain import FactorChain
+from rotavg_ros.core.options import DenseFitOptions
 from rotavg_ros.core.so3 import random_rotations
 from rotavg_ros.core.solver import rotations_from_factor
 
@@ -54,9 +55,10 @@ def _error_deg(H: np.ndarray, R: np.ndarray) -> float:
 
 def test_early_stopping_ends_a_converged_fit() -> None:
     R, i, j, Rij = _clean_problem(12, 3)
-    base: dict[str, Any] = dict(depth=4, hidden_width=36, iterations=1000, lr=0.01, warmup=100,
-                reweight_every=25, dtype="float64", seed=1)
-    stopped = fit_symmetric(12, i, j, Rij, np.ones(i.size), DMFSettings(**base, tolerance=2e-3))
+    s = DenseFitOptions(iterations=1000, lr=0.01, warmup=100, reweight_every=25,
+                        dtype="float64", tolerance=2e-3)
+    spec = FitSpec(depth=4, hidden_width=36, seed=1, device="cpu", cuda_graph=True)
+    stopped = fit_symmetric(12, i, j, Rij, np.ones(i.size), s, spec)
     assert 100 < stopped.iterations < 1000
     assert stopped.iterations % 25 == 0  # it stops at a check
     assert _error_deg(stopped.H, R) < 0.2
@@ -65,9 +67,10 @@ def test_early_stopping_ends_a_converged_fit() -> None:
 def test_float32_fit_matches_float64() -> None:
     R, i, j, Rij = _clean_problem(10, 4)
     w = np.ones(i.size)
-    base: dict[str, Any] = dict(depth=2, hidden_width=30, iterations=600, lr=0.01, warmup=100,
-                reweight_every=25, seed=2)
-    f32 = fit_symmetric(10, i, j, Rij, w, DMFSettings(**base, dtype="float32"))
-    f64 = fit_symmetric(10, i, j, Rij, w, DMFSettings(**base, dtype="float64"))
+    base: dict[str, Any] = dict(iterations=600, lr=0.01, warmup=100, reweight_every=25,
+                                tolerance=0.0)
+    spec = FitSpec(depth=2, hidden_width=30, seed=2, device="cpu", cuda_graph=True)
+    f32 = fit_symmetric(10, i, j, Rij, w, DenseFitOptions(**base, dtype="float32"), spec)
+    f64 = fit_symmetric(10, i, j, Rij, w, DenseFitOptions(**base, dtype="float64"), spec)
     assert f32.H.dtype == np.float64  # results are returned as float64 either way
     assert _error_deg(f32.H, R) < 0.01 and _error_deg(f64.H, R) < 0.01

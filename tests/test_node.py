@@ -603,7 +603,8 @@ def test_parameter_overrides(ros: RosHarness) -> None:  # noqa: F811
     assert client.solve().success
     anchor, options = seen[-1]
     assert anchor == "n2"
-    assert (options.depths, options.iterations, options.sigma, options.seed, options.threads) == (
+    assert (options.dense.depths, options.dense.iterations, options.filter.sigma,
+            options.runtime.seed, options.runtime.threads) == (
         (2, 6), 77, 0.25, 5, 1)
     assert wait_until(lambda: len(client.latest_orientations()) == 3)
     assert {m.header.frame_id for m in client.orientations} == {"map"}
@@ -619,7 +620,7 @@ def test_parameter_overrides(ros: RosHarness) -> None:  # noqa: F811
     client.send_edge("n2", "n0", rel(gt, "n2", "n0"))
     wait_received(node, 3)
     assert client.solve().success
-    assert seen[-1][1].iterations == 12
+    assert seen[-1][1].dense.iterations == 12
 
 
 def test_invalid_overrides_are_refused(ros: RosHarness) -> None:  # noqa: F811
@@ -652,8 +653,10 @@ def test_shipped_params_file_via_context_args(tmp_path: Path) -> None:
     keys = re.findall(r"^    (\w+):", text, flags=re.MULTILINE)
     assert sorted(keys) == sorted(PARAMETERS)
     changed = tmp_path / "rotavg.yaml"
-    changed.write_text(text.replace("world_frame: world ", "world_frame: shipped_check ")
-                       .replace("iterations: 1000 ", "iterations: 1234 "))
+    changed.write_text(text.replace("    world_frame: world\n", "    world_frame: shipped_check\n")
+                       .replace("    iterations: 1000\n", "    iterations: 1234\n"))
+    assert changed.read_text().count("shipped_check") == 1
+    assert changed.read_text().count("iterations: 1234") == 1
     cases: list[tuple[Path, dict[str, Any]]] = [
         (REPO / "config" / "rotavg.yaml", {}),
         (changed, {"world_frame": "shipped_check", "iterations": 1234}),

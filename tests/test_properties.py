@@ -38,7 +38,7 @@ from rotavg_ros.core.view_graph import ViewGraph
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 T = TYPESTORE.types
-OPTIONS = SolverOptions(depths=(2,), iterations=200, threads=1)
+OPTIONS = SolverOptions.from_flat(depths=(2,), iterations=200, threads=1)
 CONFIG = AdapterConfig()
 
 # ------------------------------------------------------------------ strategies

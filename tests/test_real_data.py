@@ -42,7 +42,7 @@ def test_ellis_island_gt_protocol(shared_dir: Path) -> None:
     bench = load_ellis_island(shared_dir)
     assert bench.graph.num_nodes == 227
     assert bench.graph.edge_arrays().num_edges == 20010
-    res, stats = _score(bench, SolverOptions(depths=(2,)))
+    res, stats = _score(bench, SolverOptions.from_flat(depths=(2,)))
     assert stats.num_nodes == 227
     assert res.depth == 2
     assert int(res.component.max()) == 0  # one connected component

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Hashable, Mapping, Sequence
-from dataclasses import replace
 from itertools import combinations
 from typing import Any, cast
 
@@ -20,10 +19,10 @@ from rotavg_ros.core.view_graph import ViewGraph
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
-FAST = SolverOptions(depths=(2,), iterations=300)
+FAST = SolverOptions.from_flat(depths=(2,), iterations=300)
 # Noise-free dense fits from the near-zero start need the default iteration count to be
 # reliable (at 300 some node orders stall in a mixed-reflection local minimum).
-CONVERGED = SolverOptions(depths=(2,), iterations=1000)
+CONVERGED = SolverOptions.from_flat(depths=(2,), iterations=1000)
 
 
 def _pairs_dense(n: int, p: float, rng: np.random.Generator) -> list[tuple[int, int]]:
@@ -182,8 +181,8 @@ def _shuffled(meas, seed: int):
         # Dense mode. Reweighting off and full iterations: with the paper's compounding
         # reweighting the dense fit is path dependent (different node order -> different
         # weights), which is an optimiser property, not an indexing one.
-        replace(CONVERGED, reweighting=False),
-        replace(FAST, mode="sparse"),
+        CONVERGED.replace_flat(reweighting=False),
+        FAST.replace_flat(mode="sparse"),
     ],
     ids=["dense", "sparse"],
 )
@@ -251,21 +250,22 @@ def test_average_rotations_array_interface_validates() -> None:
         average_rotations(3, np.array([0]), np.array([0]), np.eye(3)[None], np.ones(1))
     with pytest.raises(ValueError):
         average_rotations(3, np.array([0]), np.array([3]), np.eye(3)[None], np.ones(1))
-    rot, labels, anchors, *_ = average_rotations(
+    out = average_rotations(
         2, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 3)), np.zeros(0))
+    rot, labels, anchors = out.rotations, out.component, out.component_anchor
     np.testing.assert_array_equal(rot, np.tile(np.eye(3), (2, 1, 1)))
     assert labels.tolist() == [0, 1] and anchors == [0, 1]
 
 
 def test_invalid_options_raise() -> None:
     with pytest.raises(ValueError):
-        RotationAverager(SolverOptions(depths=(3,)))
+        RotationAverager(SolverOptions.from_flat(depths=(3,)))
     with pytest.raises(ValueError):
-        RotationAverager(SolverOptions(depths=(0,)))
+        RotationAverager(SolverOptions.from_flat(depths=(0,)))
     with pytest.raises(ValueError):
-        RotationAverager(SolverOptions(mode="bogus")).is_sparse(10, 20)
-    assert RotationAverager(SolverOptions(mode="dense")).is_sparse(10, 9) is False
-    assert RotationAverager(SolverOptions(mode="sparse")).is_sparse(10, 45) is True
+        RotationAverager(SolverOptions.from_flat(mode="bogus")).is_sparse(10, 20)
+    assert RotationAverager(SolverOptions.from_flat(mode="dense")).is_sparse(10, 9) is False
+    assert RotationAverager(SolverOptions.from_flat(mode="sparse")).is_sparse(10, 45) is True
 
 
 # ------------------------------------------------------------ output properties
@@ -273,7 +273,7 @@ def test_determinism_fixed_seed() -> None:
     n = 20
     _, meas, _ = _dense_problem(n, seed=6, p=0.9, noise_deg=2.0, outlier_frac=0.1)
     # Two depths and two threads: the candidates run concurrently in the thread pool.
-    opts = SolverOptions(depths=(2, 4), iterations=200, seed=3, threads=2)
+    opts = SolverOptions.from_flat(depths=(2, 4), iterations=200, seed=3, threads=2)
     r1 = RotationAverager(opts).solve(_graph(meas, range(n)))
     r2 = RotationAverager(opts).solve(_graph(meas, range(n)))
     assert r1.rotations.tobytes() == r2.rotations.tobytes()
@@ -294,7 +294,7 @@ def test_determinism_fixed_seed() -> None:
 def test_ablations_run_and_return_so3(change: dict) -> None:
     n = 20
     R, meas, _ = _dense_problem(n, seed=7, p=0.6, noise_deg=1.0, outlier_frac=0.1)
-    res = RotationAverager(replace(FAST, mode="dense", **change)).solve(_graph(meas, range(n)))
+    res = RotationAverager(FAST.replace_flat(mode="dense", **change)).solve(_graph(meas, range(n)))
     _assert_so3(res.rotations)
     assert res.rotations.shape == (n, 3, 3)
     if change.get("use_filter") is False:
@@ -307,7 +307,7 @@ def test_ablations_run_and_return_so3(change: dict) -> None:
 def test_ablation_c_vanilla_tiny_graph() -> None:
     n = 6
     R, meas, _ = _dense_problem(n, seed=8, p=1.0)
-    opts = replace(FAST, explicit_constraint=False)  # 3N x 3N factors + eigenvectors
+    opts = FAST.replace_flat(explicit_constraint=False)  # 3N x 3N factors + eigenvectors
     res = RotationAverager(opts).solve(_graph(meas, range(n)))
     _assert_so3(res.rotations)
     _assert_identity(res.rotations[0])
@@ -318,7 +318,7 @@ def test_ablation_c_vanilla_tiny_graph() -> None:
 def test_sparse_mode_forced_on_dense_graph() -> None:
     n = 15
     R, meas, _ = _dense_problem(n, seed=9, p=0.8, noise_deg=1.0)
-    res = RotationAverager(replace(FAST, mode="sparse")).solve(_graph(meas, range(n)))
+    res = RotationAverager(FAST.replace_flat(mode="sparse")).solve(_graph(meas, range(n)))
     _assert_so3(res.rotations)
     assert _errors(res, {k: R[k] for k in range(n)}).median_deg < 1.0
 
@@ -373,7 +373,8 @@ def test_warm_solve_recovers_nodes_wrong_in_the_previous_solution() -> None:
 
 def test_default_options_are_valid() -> None:
     SolverOptions().validate()
-    SolverOptions(hidden_width=3, threads=1, device="cuda:1", sigma_untested=None).validate()
+    SolverOptions.from_flat(hidden_width=3, threads=1, device="cuda:1",
+                            sigma_untested=None).validate()
 
 
 @pytest.mark.parametrize(("field", "value"), [
@@ -386,7 +387,7 @@ def test_default_options_are_valid() -> None:
     ("seed", -1), ("warm_min_known", 1.5), ("iterations", True),
 ])
 def test_invalid_options_are_refused_by_name(field: str, value: Any) -> None:
-    options = replace(SolverOptions(), **{field: value})
+    options = SolverOptions.from_flat(**{field: value})
     with pytest.raises(ValueError, match=f"invalid solver option: {field} "):
         options.validate()
     with pytest.raises(ValueError, match=field):

@@ -33,7 +33,7 @@ def test_solve_through_the_child_matches_the_ground_truth() -> None:
             g.add_edge(a, b, R[a] @ R[b].T)
     solver = SubprocessSolver(niceness=3)
     try:
-        res = solver(g, 0, SolverOptions(mode="sparse"))
+        res = solver(g, 0, SolverOptions.from_flat(mode="sparse"))
     finally:
         solver.close()
     expected = R @ R[0].T  # anchor 0 at identity
@@ -51,7 +51,7 @@ def test_a_dead_child_is_explained_and_replaced() -> None:
     g = ViewGraph()
     for a in range(4):
         g.add_edge(a, a + 1, R[a] @ R[a + 1].T)
-    options = SolverOptions(mode="sparse")
+    options = SolverOptions.from_flat(mode="sparse")
     solver = SubprocessSolver()
     try:
         # Dies before its first solve: what a script without a __main__ guard causes.

@@ -1,14 +1,26 @@
-"""The node's parameters (names, defaults, checks) and the :class:`Settings` built from them.
+r"""The node's parameters (one table: name, default, range, description, read-only) and the
+:class:`Settings` built from their values.
 
 Shared by ``rotavg_node`` and ``rotavg replay``: both turn the same parameter values into the
-same :class:`Settings`.
+same :class:`Settings`. :data:`PARAMETER_TABLE` is the one place a parameter is defined; the
+node's ``ParameterDescriptor``\ s (:mod:`rotavg_ros.ros.node`), the replay's node-parameter
+flags (:mod:`rotavg_ros.cli.replay`) and ``config/rotavg.yaml`` (:func:`parameters_yaml`;
+regenerate with ``python -m rotavg_ros.app.parameters --write config/rotavg.yaml``) are made
+from it. The solver parameters take their defaults from
+:class:`~rotavg_ros.core.options.SolverOptions`. ROS-free: plain dataclasses.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import math
-from collections.abc import Mapping
+import re
+import sys
+import textwrap
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from rotavg_ros.core.options import SolverOptions
@@ -18,36 +30,160 @@ from rotavg_ros.msg_adapters.inputs import DEFAULT_REFERENCE_VARIANCE, AdapterCo
 
 NODE_NAME = "rotavg_node"
 
-_SOLVER_DEFAULTS = SolverOptions()
 
-PARAMETER_DEFAULTS: dict[str, Any] = {
-    "world_frame": "world",
-    "anchor_frame": "",
-    "solve_period": 1.0,
-    "repeat_policy": "merge",
-    "quaternion_tolerance": 1e-3,
-    "reference_variance": DEFAULT_REFERENCE_VARIANCE,
-    "min_weight": 1e-3,
-    "max_weight": 1e3,
-    "mode": _SOLVER_DEFAULTS.mode,
-    "depths": list(_SOLVER_DEFAULTS.depths),
-    "iterations": _SOLVER_DEFAULTS.iterations,
-    "sigma": _SOLVER_DEFAULTS.sigma,
-    "seed": 0,
-    "warm_start": True,
-    "solve_in_subprocess": True,
-    "solver_niceness": 10,
-    "graph_file": "",
-    "device": "cpu",
-    "threads": 0,
-    "publish_markers": True,
-    "marker_spacing": 1.0,
-    "residual_warn_deg": 5.0,
-    "qos_depth": 10000,
-    "orientations_qos_depth": 10000,
-}
-"""Every ``rotavg_node`` parameter and its default (the node adds descriptors and ranges)."""
+@dataclass(frozen=True)
+class FloatRange:
+    """Inclusive range of a floating-point parameter (a ROS ``FloatingPointRange``)."""
 
+    low: float
+    high: float
+
+
+@dataclass(frozen=True)
+class IntRange:
+    """Inclusive range of an integer parameter (a ROS ``IntegerRange``)."""
+
+    low: int
+    high: int
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One node parameter: its type is its default's (``bool``, ``int``, ``float``, ``str``
+    or a list of ``int``)."""
+
+    name: str
+    default: Any
+    description: str
+    range: FloatRange | IntRange | None = None
+    choices: tuple[str, ...] = ()
+    """The accepted values of a string parameter (checked by :func:`validate_parameter`)."""
+    constraints: str = ""
+    """Constraint text for tools (a descriptor's ``additional_constraints``); with
+    ``choices`` and no text, "one of: ..."."""
+    read_only: bool = False
+    """Set at start only (a ROS read-only parameter)."""
+
+    @property
+    def type(self) -> type:
+        return type(self.default)
+
+    @property
+    def constraint_text(self) -> str:
+        if self.constraints or not self.choices:
+            return self.constraints
+        return "one of: " + ", ".join(self.choices)
+
+
+_SOLVER = SolverOptions()
+
+PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
+    ParameterSpec(
+        "world_frame", "world",
+        "Frame id of the published orientations' header (the parent frame in TF).",
+        constraints="non-empty frame id without '/' prefix"),
+    ParameterSpec(
+        "anchor_frame", "",
+        "Frame that gets the identity rotation; empty = the first frame accepted."),
+    ParameterSpec(
+        "solve_period", 1.0,
+        "Seconds between timer checks; a solve starts only if the graph changed.",
+        range=FloatRange(0.01, 3600.0), read_only=True),
+    ParameterSpec(
+        "repeat_policy", RepeatPolicy.MERGE.value,
+        "How repeated measurements of one frame pair combine: merge (robust average, weights "
+        "add), latest (newest wins) or first (oldest wins).",
+        choices=tuple(p.value for p in RepeatPolicy), read_only=True),
+    ParameterSpec(
+        "quaternion_tolerance", 1e-3,
+        "Accepted | |q| - 1 |; within it the quaternion is normalised, beyond it the edge is "
+        "rejected as non_unit_quaternion.", range=FloatRange(0.0, 0.5)),
+    ParameterSpec(
+        "reference_variance", DEFAULT_REFERENCE_VARIANCE,
+        "Per-axis rotation variance (rad^2) of an Odometry edge that gets weight 1; "
+        "weight = 3 * reference_variance / trace(rotation covariance). Default (1 deg)^2.",
+        range=FloatRange(1e-12, 10.0)),
+    ParameterSpec(
+        "min_weight", 1e-3,
+        "Lower clamp of covariance-derived edge weights.", range=FloatRange(1e-9, 1e9)),
+    ParameterSpec(
+        "max_weight", 1e3,
+        "Upper clamp of covariance-derived edge weights.", range=FloatRange(1e-9, 1e9)),
+    ParameterSpec(
+        "mode", _SOLVER.mode,
+        "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "
+        "L-BFGS, for chain-like SLAM graphs) or auto (by mean degree).",
+        choices=("auto", "dense", "sparse")),
+    ParameterSpec(
+        "depths", list(_SOLVER.dense.depths),
+        "Candidate DMF depths (positive, even); the one with the lowest cost wins.",
+        constraints="non-empty list of positive even integers"),
+    ParameterSpec(
+        "iterations", _SOLVER.dense.iterations,
+        "Gradient iterations of the DMF optimisation per depth.",
+        range=IntRange(1, 10_000_000)),
+    ParameterSpec(
+        "sigma", _SOLVER.filter.sigma,
+        "Spanning-tree filter threshold on the chordal distance d_chord(R_ij, R_ij^tree).",
+        range=FloatRange(0.0, 2.83)),
+    ParameterSpec(
+        "seed", _SOLVER.runtime.seed, "Random seed of the solver.",
+        range=IntRange(0, 2**31 - 1)),
+    ParameterSpec(
+        "warm_start", True,
+        "Warm-start each re-solve from the previous solution (known nodes keep their "
+        "rotation, new ones start from the spanning tree; dense mode then runs a short "
+        "fit at the previous depth)."),
+    ParameterSpec(
+        "solve_in_subprocess", True,
+        "Run the solver in a child process (default) so a long solve cannot starve the "
+        "subscriptions of the interpreter lock; false runs it in the worker thread.",
+        read_only=True),
+    ParameterSpec(
+        "solver_niceness", 10,
+        "Added to the solver child process's nice value (POSIX), so solves use the CPU the "
+        "node and its neighbours (a SLAM front end) leave idle; 0 = same priority as the "
+        "node.", range=IntRange(0, 19), read_only=True),
+    ParameterSpec(
+        "graph_file", "",
+        "g2o file of the live graph (rotavg_ros.io.graph_store format): loaded at start when "
+        "it exists, written by ~/save_graph and on a clean shutdown; empty = no persistence.",
+        read_only=True),
+    ParameterSpec(
+        "device", _SOLVER.runtime.device,
+        "Torch device of the solver: cpu, cuda, cuda:N or auto (CUDA when available).",
+        constraints="cpu, cuda, cuda:N or auto"),
+    ParameterSpec(
+        "threads", _SOLVER.runtime.threads or 0,  # SolverOptions' None is the node's 0
+        "Torch CPU threads for the solver, split among the depth candidates; 0 = one "
+        "thread per candidate, candidates in parallel up to the CPU count.",
+        range=IntRange(0, 1024)),
+    ParameterSpec(
+        "publish_markers", True,
+        "Publish ~/markers (RViz MarkerArray) after solves, when something subscribes."),
+    ParameterSpec(
+        "marker_spacing", 1.0,
+        "Grid spacing (m) of the marker layout (there are no translations to show).",
+        range=FloatRange(0.01, 100.0)),
+    ParameterSpec(
+        "residual_warn_deg", 5.0,
+        "Diagnostics turn WARN when the median inlier residual exceeds this (deg).",
+        range=FloatRange(0.0, 180.0)),
+    ParameterSpec(
+        "qos_depth", 10000,
+        "KEEP_LAST depth of the reliable edge subscriptions.",
+        range=IntRange(1, 1_000_000), read_only=True),
+    ParameterSpec(
+        "orientations_qos_depth", 10000,
+        "KEEP_LAST depth of ~/orientations; a solve publishes one message per node, so keep "
+        "it at least the number of nodes.", range=IntRange(1, 10_000_000), read_only=True),
+)
+"""Every ``rotavg_node`` parameter, in declaration order."""
+
+PARAMETER_SPECS: dict[str, ParameterSpec] = {spec.name: spec for spec in PARAMETER_TABLE}
+
+PARAMETER_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in PARAMETER_TABLE}
+"""Every ``rotavg_node`` parameter and its default."""
 
 
 def validate_parameter(name: str, value: Any) -> str | None:
@@ -87,7 +223,7 @@ class Settings:
 def solver_options_from_parameters(p: Mapping[str, Any]) -> SolverOptions:
     """The node's :class:`SolverOptions` (fields without a parameter keep their default)."""
     threads = int(p["threads"])
-    return SolverOptions(
+    return SolverOptions.from_flat(
         mode=str(p["mode"]),
         depths=tuple(int(d) for d in p["depths"]),
         iterations=int(p["iterations"]),
@@ -136,3 +272,90 @@ def settings_from_parameters(
         warm_start=bool(p["warm_start"]),
     )
 
+
+
+# --------------------------------------------------------------------------- params file
+
+_YAML_HEADER = """\
+# Parameters of rotavg_node (rotavg_ros/ros/node.py); every value here is the default.
+# Generated from rotavg_ros/app/parameters.py: python -m rotavg_ros.app.parameters --write FILE
+# Load with:  rotavg_node --ros-args --params-file config/rotavg.yaml
+# The key below matches a node named rotavg_node in any namespace; use "/**" for every node.
+/**/rotavg_node:
+  ros__parameters:
+"""
+
+_PLAIN_STRING = re.compile(r"[A-Za-z_][A-Za-z0-9_:./-]*")
+_YAML_WORDS = {"true", "false", "yes", "no", "on", "off", "null", "y", "n", "~"}
+
+
+def yaml_value(value: Any) -> str:
+    """``value`` as a YAML scalar or flow list that ROS reads back with the same type."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        text = repr(value)
+        mantissa, e, exponent = text.partition("e")
+        if "." not in mantissa and mantissa not in ("inf", "-inf", "nan"):
+            text = f"{mantissa}.0{e}{exponent}"  # a double, never an integer or a string
+        return text
+    if isinstance(value, str):
+        plain = _PLAIN_STRING.fullmatch(value) and value.lower() not in _YAML_WORDS
+        return value if plain else json.dumps(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(yaml_value(v) for v in value) + "]"
+    raise TypeError(f"no YAML form for {value!r}")
+
+
+def _range_text(spec: ParameterSpec) -> str:
+    parts = []
+    if spec.range is not None:
+        if isinstance(spec.range, IntRange):
+            parts.append(f"range {spec.range.low} to {spec.range.high}")
+        else:
+            parts.append(f"range {spec.range.low:g} to {spec.range.high:g}")
+    if spec.constraint_text:
+        parts.append(spec.constraint_text)
+    if spec.read_only:
+        parts.append("read-only: set at start")
+    return "; ".join(parts)
+
+
+def parameters_yaml() -> str:
+    """The text of ``config/rotavg.yaml``: every parameter at its default, each under a
+    comment with its description, range and whether it is read-only."""
+    lines = [_YAML_HEADER.rstrip("\n")]
+    for k, spec in enumerate(PARAMETER_TABLE):
+        if k:
+            lines.append("")
+        lines += textwrap.wrap(spec.description, width=92, initial_indent="    # ",
+                               subsequent_indent="    # ", break_on_hyphens=False)
+        extra = _range_text(spec)
+        if extra:
+            lines.append(f"    # [{extra}]")
+        lines.append(f"    {spec.name}: {yaml_value(spec.default)}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m rotavg_ros.app.parameters --yaml`` prints the params file; ``--write FILE``
+    writes it."""
+    p = argparse.ArgumentParser(prog="python -m rotavg_ros.app.parameters",
+                                description="Generate rotavg_node's params file from the "
+                                "parameter table.")
+    out = p.add_mutually_exclusive_group(required=True)
+    out.add_argument("--yaml", action="store_true", help="print it")
+    out.add_argument("--write", metavar="FILE", help="write it to FILE (config/rotavg.yaml)")
+    args = p.parse_args(argv)
+    text = parameters_yaml()
+    if args.write:
+        Path(args.write).write_text(text)
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

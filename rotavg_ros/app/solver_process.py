@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import multiprocessing
 import os
 import signal
@@ -51,7 +50,7 @@ class SubprocessSolver:
         initial_depth: int | None = None,
     ) -> SolveResult:
         pool = self._get_pool()
-        options = dataclasses.replace(options, progress=None)  # callables do not pickle
+        options = options.replace_flat(progress=None)  # callables do not pickle
         try:
             result = pool.submit(run_solver, graph, anchor, options,
                                  dict(initial) if initial else None, initial_depth).result()

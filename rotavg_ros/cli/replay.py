@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import re
 import sys
@@ -11,7 +10,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from rotavg_ros.app.parameters import NODE_NAME, settings_from_parameters
+from rotavg_ros.app.parameters import NODE_NAME, PARAMETER_SPECS, settings_from_parameters
 from rotavg_ros.cli.output import say
 from rotavg_ros.cli.solver_args import add_solver_arguments, options_from_args
 from rotavg_ros.errors import InputError
@@ -47,23 +46,43 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--verbose", "-v", action="store_true", help="print the solver's progress")
     node = p.add_argument_group("node parameters (as rotavg_node's)")
     node.add_argument("--node-name", default=NODE_NAME)
-    node.add_argument("--world-frame", default="world")
-    node.add_argument("--anchor-frame", default="")
-    node.add_argument("--repeat-policy", default="merge", choices=("merge", "latest", "first"))
-    node.add_argument("--quaternion-tolerance", type=float, default=1e-3)
-    node.add_argument("--reference-variance", type=float, default=None,
-                      help="rad^2 per axis that maps to weight 1 (default (1 deg)^2)")
-    node.add_argument("--min-weight", type=float, default=1e-3)
-    node.add_argument("--max-weight", type=float, default=1e3)
+    _add_parameter_flags(node, NODE_FLAGS[:7])
     node.add_argument("--no-markers", action="store_true")
     node.add_argument("--no-warm-start", action="store_true",
                       help="solve every period from scratch (default: warm-start each solve "
                       "from the previous one, as the node does)")
-    node.add_argument("--marker-spacing", type=float, default=1.0)
-    node.add_argument("--residual-warn-deg", type=float, default=5.0)
+    _add_parameter_flags(node, NODE_FLAGS[7:])
     add_solver_arguments(p)
     p.set_defaults(func=cmd_replay)
     return p
+
+
+NODE_FLAGS = ("world_frame", "anchor_frame", "repeat_policy", "quaternion_tolerance",
+              "reference_variance", "min_weight", "max_weight", "marker_spacing",
+              "residual_warn_deg")
+"""Node parameters with a flag of their own (``--world-frame`` ...), made from the parameter
+table; ``--no-markers`` and ``--no-warm-start`` set ``publish_markers`` and ``warm_start``,
+the solver flags the solver parameters."""
+
+_UNSET_BY_DEFAULT = frozenset({"reference_variance"})
+"""Flags whose default is None, meaning the table's default (kept out of the help)."""
+
+
+def _add_parameter_flags(group: Any, names: Sequence[str]) -> None:
+    """One flag per node parameter, with the table's type, default, choices and description."""
+    for name in names:
+        spec = PARAMETER_SPECS[name]
+        text = spec.description.replace("%", "%%")
+        if name in _UNSET_BY_DEFAULT:
+            default, text = None, f"{text} (default: the node's)"
+        else:
+            default, text = spec.default, f"{text} (default %(default)r)"
+        kwargs: dict[str, Any] = {"default": default, "help": text}
+        if spec.choices:
+            kwargs["choices"] = spec.choices
+        elif spec.type is not str:
+            kwargs["type"] = spec.type
+        group.add_argument("--" + name.replace("_", "-"), **kwargs)
 
 
 def config_from_args(args: argparse.Namespace) -> ReplayConfig:
@@ -74,25 +93,15 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
         raise InputError(f"--solve-period must be > 0, got {args.solve_period}")
     if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", args.node_name):
         raise InputError(f"--node-name must be a ROS node name, got {args.node_name!r}")
-    options = dataclasses.replace(
-        options_from_args(args),
-        progress=say if args.verbose else None)
-    params: dict[str, Any] = {
-        "world_frame": args.world_frame,
-        "anchor_frame": args.anchor_frame,
-        "repeat_policy": args.repeat_policy,
-        "quaternion_tolerance": args.quaternion_tolerance,
-        "min_weight": args.min_weight,
-        "max_weight": args.max_weight,
+    options = options_from_args(args).replace_flat(progress=say if args.verbose else None)
+    params: dict[str, Any] = {name: getattr(args, name) for name in NODE_FLAGS
+                              if getattr(args, name) is not None}
+    params.update({
         "publish_markers": not args.no_markers,
-        "marker_spacing": args.marker_spacing,
-        "residual_warn_deg": args.residual_warn_deg,
         "mode": args.mode,
         "warm_start": not args.no_warm_start,
-        "depths": list(options.depths),
-    }
-    if args.reference_variance is not None:
-        params["reference_variance"] = args.reference_variance
+        "depths": list(options.dense.depths),
+    })
     try:
         settings = settings_from_parameters(params, solver=options)
     except ValueError as exc:

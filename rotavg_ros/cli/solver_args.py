@@ -16,23 +16,23 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--mode", default=d.mode, choices=("auto", "dense", "sparse"),
                    help="dense: the paper's DMF; sparse: chordal start + Huber + L-BFGS for "
                    "chain-like SLAM graphs; auto: by mean degree (default %(default)s)")
-    g.add_argument("--seed", type=int, default=d.seed,
+    g.add_argument("--seed", type=int, default=d.runtime.seed,
                    help="random seed; a seed gives bitwise-equal results on the CPU "
                    "(default %(default)s)")
-    g.add_argument("--depths", default=",".join(map(str, d.depths)),
+    g.add_argument("--depths", default=",".join(map(str, d.dense.depths)),
                    help="candidate depths, comma separated (default %(default)s)")
-    g.add_argument("--iterations", type=int, default=d.iterations,
+    g.add_argument("--iterations", type=int, default=d.dense.iterations,
                    help="dense mode: Adam iterations at most (default %(default)s)")
-    g.add_argument("--tolerance", type=float, default=d.tolerance,
+    g.add_argument("--tolerance", type=float, default=d.dense.tolerance,
                    help="dense mode early stopping: relative change of H per 25 iterations "
                    "(0 = off; default %(default)s)")
-    g.add_argument("--dtype", default=d.dtype, choices=("float32", "float64"),
+    g.add_argument("--dtype", default=d.dense.dtype, choices=("float32", "float64"),
                    help="dense mode: precision of the Adam fit (default %(default)s)")
-    g.add_argument("--lr", type=float, default=d.lr,
+    g.add_argument("--lr", type=float, default=d.dense.lr,
                    help="dense mode: initial Adam step size, cosine decay (default %(default)s)")
-    g.add_argument("--sigma", type=float, default=d.sigma,
+    g.add_argument("--sigma", type=float, default=d.filter.sigma,
                    help="filter threshold on d_chord(R_ij, R_ij^tree) (default %(default)s)")
-    g.add_argument("--device", default=d.device, help="cpu, cuda or auto")
+    g.add_argument("--device", default=d.runtime.device, help="cpu, cuda or auto")
     g.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads, split among the depth candidates (default or 0: "
                    "one per candidate, candidates in parallel up to the CPU count)")
@@ -51,7 +51,7 @@ def options_from_args(args: argparse.Namespace) -> SolverOptions:
     except ValueError as exc:
         raise InputError(f"--depths: expected comma-separated integers: {args.depths!r}") from exc
     progress = None if getattr(args, "quiet", False) else say
-    return SolverOptions(
+    return SolverOptions.from_flat(
         mode=args.mode, depths=depths, iterations=args.iterations, tolerance=args.tolerance,
         dtype=args.dtype, lr=args.lr, sigma=args.sigma,
         seed=args.seed, device=args.device,

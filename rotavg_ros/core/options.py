@@ -1,4 +1,13 @@
-"""Options of the rotation averager (no solver logic here).
+"""Options of the rotation averager (no solver logic here), grouped by pipeline stage.
+
+:class:`SolverOptions` holds ``mode`` and one options object per stage: the edge filter
+(:class:`FilterOptions`), the DMF model and its Adam fit (:class:`DenseFitOptions`), the
+sparse-graph L-BFGS fit (:class:`SparseFitOptions`), warm-started re-solves
+(:class:`WarmStartOptions`) and where the solve runs (:class:`RuntimeOptions`). Every default
+is written once, here. The command line, the node parameters and older code name the options
+by their flat names (``sigma``, ``sparse_rounds``, ``warm_lr``, ...):
+:meth:`SolverOptions.from_flat`, :meth:`SolverOptions.flat` and
+:meth:`SolverOptions.replace_flat` translate.
 
 Conventions: rotations are world-to-node (``x_node = R_i x_world``); edges carry
 ``R_ij ~= R_i R_j^T``. The anchor node of each connected component gets identity.
@@ -6,11 +15,12 @@ Conventions: rotations are world-to-node (``x_node = R_i x_world``); edges carry
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import TypeGuard
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -18,73 +28,116 @@ from rotavg_ros.core.types import ProgressFn
 from rotavg_ros.errors import InputError
 
 
-@dataclass
-class SolverOptions:
-    """Every knob of the filtered-DMF pipeline; defaults are the measured choices."""
+def _flat(name: str) -> dict[str, str]:
+    """Field metadata: the option's flat name when it differs from the field's."""
+    return {"flat": name}
 
-    mode: str = "auto"
-    """``dense``: the paper's DMF (near-zero init, entry-wise L1, Adam, Sec. IV-C
-    reweighting). ``sparse``: chordal warm start, entry-wise Huber, L-BFGS (for chain-like
-    SLAM graphs). ``auto``: sparse when the mean degree 2|E|/N < ``sparse_mean_degree``."""
-    sparse_mean_degree: float = 10.0
-    depths: tuple[int, ...] = (2, 4, 6, 8)
-    """Candidate depths d (even); H has d/2 factors. The best by the Eq. 3 cost wins."""
-    sparse_depths: tuple[int, ...] = (2,)
-    """Depth candidates in sparse mode. Depth matters through DMF's implicit bias from a
-    near-zero start; a warm-started L-BFGS fit of a smooth loss has none, so one is enough."""
+
+@dataclass
+class FilterOptions:
+    """Spanning-tree edge filtering (Sec. IV-A)."""
+
     use_filter: bool = True
-    """Spanning-tree edge filtering (ablation (a) turns it off)."""
+    """Filter edges at all (ablation (a) turns it off)."""
     use_support_count: bool = True
     """Order tree edges by support count first (ablation (b): mean error only)."""
-    explicit_constraint: bool = True
-    """Rank-3 symmetric H H^T (ablation (c): vanilla 3N x 3N factors + eigendecomposition)."""
-    reweighting: bool = True
-    """IRLS-style reweighting of Sec. IV-C (ablation (d) turns it off)."""
     sigma: float = 0.2
     """Filter threshold on d_chord(R_ij, R_ij^tree) (0.2 = 8.1 deg)."""
     sigma_untested: float | None = 0.6
     """Threshold for edges on no triangle whose tree path is triangle-verified
     (0.6 = 24.5 deg, allowing for path drift); None never removes such edges."""
+
+
+@dataclass
+class DenseFitOptions:
+    """The DMF model H H^T and its Adam fit (Sec. IV-B to IV-D): dense mode, and the model
+    (width, initial scale, ablations) the sparse fit shares."""
+
+    depths: tuple[int, ...] = (2, 4, 6, 8)
+    """Candidate depths d (even); H has d/2 factors. The best by the Eq. 3 cost wins."""
     iterations: int = 1000
-    """Dense mode: Adam iterations at most (fewer when ``tolerance`` stops the fit)."""
+    """Adam iterations at most (fewer when ``tolerance`` stops the fit)."""
     tolerance: float = 5e-4
-    """Dense mode early stopping: relative change of H per 25 iterations below which the
-    fit counts as converged (twice in a row, after the warm-up); 0 = run every iteration.
-    On Ellis Island the depth-2 fit stops after about 600 of 1000 iterations (mean error
-    +0.007 deg); deeper fits converge later and mostly run to the end."""
+    """Early stopping: relative change of H per ``check_every`` iterations below which the
+    fit counts as converged (``patience`` times in a row, after the warm-up); 0 = run every
+    iteration. On Ellis Island the depth-2 fit stops after about 600 of 1000 iterations
+    (mean error +0.007 deg); deeper fits converge later and mostly run to the end."""
     dtype: str = "float32"
-    """Dense mode: torch dtype of the Adam fit (``float32`` or ``float64``). float32 is
-    about twice as fast (the full-width factors are memory-bound) and gave the same Ellis
-    Island errors to 0.002 deg; sparse mode always runs in float64."""
+    """Torch dtype of the Adam fit (``float32`` or ``float64``). float32 is about twice as
+    fast (the full-width factors are memory-bound) and gave the same Ellis Island errors to
+    0.002 deg; sparse mode always runs in float64."""
     lr: float = 0.01
+    """Initial Adam step size; cosine decay to ``lr * lr_final_ratio``."""
+    lr_final_ratio: float = 0.01
+    reweighting: bool = True
+    """IRLS-style reweighting of Sec. IV-C (ablation (d) turns it off; sparse mode too)."""
     reweight_every: int = 25
     """lambda: reweight every this many iterations ..."""
     warmup: int = 200
     """lambda_warm: ... after this many warm-up iterations."""
     init_scale: float = 1e-2
-    huber_factor: float = 30.0
-    """Sparse mode: Huber delta = this x median |entry residual| of the chordal start."""
-    sparse_rounds: int = 8
-    """Sparse mode: at most this many L-BFGS runs, with an outlier reweighting between."""
-    sparse_inner_iterations: int = 300
-    sparse_diagonal_weight: float = 10.0
-    sparse_outlier_factor: float = 5.0
-    """Sparse mode: edges whose noise-scaled residual exceeds this x the median are
-    down-weighted between L-BFGS runs."""
-    warm_iterations: int = 100
-    """Dense mode, warm-started re-solve: Adam iterations (vs ``iterations`` cold). 100
-    was as accurate as 150 (2000 nodes +1% edges: median 0.288 vs 0.291 deg; a 1000-node
-    stream: 0.369 vs 0.394) in two thirds of the time; 50 lost accuracy."""
-    warm_lr: float = 1e-3
-    """Dense mode, warm-started re-solve: initial learning rate."""
-    warm_min_known: float = 0.5
-    """Warm start only when at least this fraction of a component's nodes is known."""
+    """Entries of the near-zero initial product (a warm start's noise on the hidden
+    directions, in sparse mode too)."""
+    diagonal_weight: float = 1.0
+    """Weight of the |H_i H_i^T - I|_1 terms."""
+    check_every: int = 25
+    """Early stopping (and the fit's monitor) looks at H every this many iterations."""
+    patience: int = 2
+    """Converged after this many consecutive checks below ``tolerance``; the fit then
+    anneals the step size over ``cooldown`` iterations and stops."""
+    cooldown: int = 50
+    explicit_constraint: bool = True
+    """Rank-3 symmetric H H^T (ablation (c): vanilla 3N x 3N factors + eigendecomposition)."""
     hidden_width: int | None = None
     """Width of the hidden factors; None = 3N (the paper) up to ``max_full_width_nodes``,
     ``scalable_width`` above."""
     max_full_width_nodes: int = 300
     scalable_width: int = 64
+
+
+@dataclass
+class SparseFitOptions:
+    """Sparse mode: chordal warm start, entry-wise Huber loss, L-BFGS (chain-like SLAM
+    graphs)."""
+
+    mean_degree: float = field(default=10.0, metadata=_flat("sparse_mean_degree"))
+    """Mode ``auto`` picks sparse mode when the mean degree 2|E|/N is below this."""
+    depths: tuple[int, ...] = field(default=(2,), metadata=_flat("sparse_depths"))
+    """Depth candidates. Depth matters through DMF's implicit bias from a near-zero start;
+    a warm-started L-BFGS fit of a smooth loss has none, so one is enough."""
+    huber_factor: float = 30.0
+    """Huber delta = this x median |entry residual| of the chordal start."""
+    rounds: int = field(default=8, metadata=_flat("sparse_rounds"))
+    """At most this many L-BFGS runs, with an outlier reweighting between."""
+    inner_iterations: int = field(default=300, metadata=_flat("sparse_inner_iterations"))
+    """L-BFGS steps per run at most."""
+    diagonal_weight: float = field(default=10.0, metadata=_flat("sparse_diagonal_weight"))
+    """Weight of the Huber |H_i H_i^T - I| terms."""
+    outlier_factor: float = field(default=5.0, metadata=_flat("sparse_outlier_factor"))
+    """Edges whose noise-scaled residual exceeds this x the median are down-weighted
+    between L-BFGS runs."""
+
+
+@dataclass
+class WarmStartOptions:
+    """Re-solves warm-started from a previous solution (a growing graph)."""
+
+    min_known: float = field(default=0.5, metadata=_flat("warm_min_known"))
+    """Warm start only when at least this fraction of a component's nodes is known."""
+    iterations: int = field(default=100, metadata=_flat("warm_iterations"))
+    """Dense mode: Adam iterations (vs ``DenseFitOptions.iterations`` cold), no warm-up.
+    100 was as accurate as 150 (2000 nodes +1% edges: median 0.288 vs 0.291 deg; a
+    1000-node stream: 0.369 vs 0.394) in two thirds of the time; 50 lost accuracy."""
+    lr: float = field(default=1e-3, metadata=_flat("warm_lr"))
+    """Dense mode: initial learning rate."""
+
+
+@dataclass
+class RuntimeOptions:
+    """Where and how the solve runs; none of these changes the method."""
+
     seed: int = 0
+    """Random seed; the fit of depth d uses ``seed + d``."""
     device: str = "cpu"
     """Torch device: ``cpu``, ``cuda`` (or ``cuda:N``), or ``auto`` (CUDA when available)."""
     cuda_graphs: bool = True
@@ -96,60 +149,131 @@ class SolverOptions:
     parallel. None: one thread per candidate, as many candidates at once as there are
     CPUs (robust when the CPU is shared; see ``solver._thread_plan``)."""
     progress: ProgressFn | None = field(default=None, repr=False, compare=False)
+    """Called with a line of text at each stage (None: quiet)."""
 
+
+_GROUPS: dict[str, type] = {
+    "filter": FilterOptions,
+    "dense": DenseFitOptions,
+    "sparse": SparseFitOptions,
+    "warm": WarmStartOptions,
+    "runtime": RuntimeOptions,
+}
+
+
+@dataclass
+class SolverOptions:
+    """Every knob of the filtered-DMF pipeline, one options object per stage; the defaults
+    (the measured choices) are those of the stage classes."""
+
+    mode: str = "auto"
+    """``dense``: the paper's DMF (near-zero init, entry-wise L1, Adam, Sec. IV-C
+    reweighting). ``sparse``: chordal warm start, entry-wise Huber, L-BFGS (for chain-like
+    SLAM graphs). ``auto``: sparse when the mean degree 2|E|/N < ``sparse.mean_degree``."""
+    filter: FilterOptions = field(default_factory=FilterOptions)
+    dense: DenseFitOptions = field(default_factory=DenseFitOptions)
+    sparse: SparseFitOptions = field(default_factory=SparseFitOptions)
+    warm: WarmStartOptions = field(default_factory=WarmStartOptions)
+    runtime: RuntimeOptions = field(default_factory=RuntimeOptions)
+
+    # ------------------------------------------------------------ flat names
+    @classmethod
+    def from_flat(cls, **values: Any) -> SolverOptions:
+        """Options from flat names (``sigma=0.3, sparse_rounds=4, seed=1``); the others keep
+        their defaults. Raises ``TypeError`` for an unknown name."""
+        return cls().replace_flat(**values)
+
+    def replace_flat(self, **values: Any) -> SolverOptions:
+        """A copy with the options named by flat name changed (``TypeError`` for an unknown
+        name); the stage objects are copied, never shared with ``self``."""
+        unknown = sorted(set(values) - set(FLAT_NAMES))
+        if unknown:
+            raise TypeError(f"unknown solver option(s): {', '.join(unknown)}")
+        changes: dict[str, dict[str, Any]] = {group: {} for group in _GROUPS}
+        for name, value in values.items():
+            group, attr = FLAT_NAMES[name]
+            if group:
+                changes[group][attr] = value
+        return SolverOptions(
+            mode=values.get("mode", self.mode),
+            **{group: dataclasses.replace(getattr(self, group), **changes[group])
+               for group in _GROUPS},
+        )
+
+    def flat(self) -> dict[str, Any]:
+        """Every option by its flat name."""
+        return {name: getattr(getattr(self, group), attr) if group else getattr(self, attr)
+                for name, (group, attr) in FLAT_NAMES.items()}
+
+    # ------------------------------------------------------------ validation
     def validate(self) -> None:
         """Raise :class:`~rotavg_ros.errors.InputError` (a ``ValueError``) naming the first
-        option whose value cannot work.
+        option (by its flat name) whose value cannot work.
 
         Checks ranges only (no device probing: an unavailable CUDA device is reported
         when the solve starts).
         """
-        reason = next(self._problems(), None)
+        reason = next(_problems(self.flat()), None)
         if reason is not None:
             raise InputError(f"invalid solver option: {reason}")
 
-    def _problems(self) -> Iterator[str]:
-        if self.mode not in ("auto", "dense", "sparse"):
-            yield f"mode must be auto, dense or sparse, got {self.mode!r}"
-        for name in ("depths", "sparse_depths"):
-            depths = getattr(self, name)
-            if not depths or any(not _is_int(d) or d < 2 or d % 2 for d in depths):
-                yield f"{name} must be a non-empty list of even integers >= 2, got {depths!r}"
-        for name in ("iterations", "warm_iterations", "reweight_every", "sparse_rounds",
-                     "sparse_inner_iterations"):
-            if not _is_int(getattr(self, name)) or getattr(self, name) < 1:
-                yield f"{name} must be an integer >= 1, got {getattr(self, name)!r}"
-        for name in ("warmup", "max_full_width_nodes"):
-            if not _is_int(getattr(self, name)) or getattr(self, name) < 0:
-                yield f"{name} must be an integer >= 0, got {getattr(self, name)!r}"
-        for name in ("lr", "warm_lr", "init_scale", "sigma", "huber_factor",
-                     "sparse_outlier_factor"):
-            if not _positive(getattr(self, name)):
-                yield f"{name} must be a finite number > 0, got {getattr(self, name)!r}"
-        if self.sigma_untested is not None and not _positive(self.sigma_untested):
-            yield f"sigma_untested must be None or a finite number > 0, " \
-                  f"got {self.sigma_untested!r}"
-        for name in ("tolerance", "sparse_mean_degree", "sparse_diagonal_weight"):
-            value = getattr(self, name)
-            if not (_is_number(value) and math.isfinite(value) and value >= 0):
-                yield f"{name} must be a finite number >= 0, got {value!r}"
-        if not (_is_number(self.warm_min_known) and 0.0 <= self.warm_min_known <= 1.0):
-            yield f"warm_min_known must be in [0, 1], got {self.warm_min_known!r}"
-        if self.dtype not in ("float32", "float64"):
-            yield f"dtype must be float32 or float64, got {self.dtype!r}"
-        if self.hidden_width is not None and (not _is_int(self.hidden_width)
-                                              or self.hidden_width < 3):
-            yield f"hidden_width must be None or an integer >= 3 (H has rank 3), " \
-                  f"got {self.hidden_width!r}"
-        if not _is_int(self.scalable_width) or self.scalable_width < 3:
-            yield f"scalable_width must be an integer >= 3 (H has rank 3), " \
-                  f"got {self.scalable_width!r}"
-        if self.threads is not None and (not _is_int(self.threads) or self.threads < 1):
-            yield f"threads must be None or an integer >= 1, got {self.threads!r}"
-        if not _DEVICE.fullmatch(str(self.device)):
-            yield f"device must be cpu, cuda, cuda:N or auto, got {self.device!r}"
-        if not _is_int(self.seed) or self.seed < 0:
-            yield f"seed must be an integer >= 0, got {self.seed!r}"
+
+def _flat_names() -> dict[str, tuple[str, str]]:
+    names: dict[str, tuple[str, str]] = {"mode": ("", "mode")}
+    for group, cls in _GROUPS.items():
+        for f in dataclasses.fields(cls):
+            names[f.metadata.get("flat", f.name)] = (group, f.name)
+    return names
+
+
+FLAT_NAMES: Mapping[str, tuple[str, str]] = _flat_names()
+"""Flat option name -> ``(stage attribute of SolverOptions, field)``; ``mode`` -> ``("",
+"mode")``."""
+
+
+def _problems(o: Mapping[str, Any]) -> Iterator[str]:
+    """What is wrong with the flat options ``o``, first problem first."""
+    if o["mode"] not in ("auto", "dense", "sparse"):
+        yield f"mode must be auto, dense or sparse, got {o['mode']!r}"
+    for name in ("depths", "sparse_depths"):
+        depths = o[name]
+        if not depths or any(not _is_int(d) or d < 2 or d % 2 for d in depths):
+            yield f"{name} must be a non-empty list of even integers >= 2, got {depths!r}"
+    for name in ("iterations", "warm_iterations", "reweight_every", "sparse_rounds",
+                 "sparse_inner_iterations"):
+        if not _is_int(o[name]) or o[name] < 1:
+            yield f"{name} must be an integer >= 1, got {o[name]!r}"
+    for name in ("warmup", "max_full_width_nodes"):
+        if not _is_int(o[name]) or o[name] < 0:
+            yield f"{name} must be an integer >= 0, got {o[name]!r}"
+    for name in ("lr", "warm_lr", "init_scale", "sigma", "huber_factor",
+                 "sparse_outlier_factor"):
+        if not _positive(o[name]):
+            yield f"{name} must be a finite number > 0, got {o[name]!r}"
+    if o["sigma_untested"] is not None and not _positive(o["sigma_untested"]):
+        yield f"sigma_untested must be None or a finite number > 0, " \
+              f"got {o['sigma_untested']!r}"
+    for name in ("tolerance", "sparse_mean_degree", "sparse_diagonal_weight"):
+        value = o[name]
+        if not (_is_number(value) and math.isfinite(value) and value >= 0):
+            yield f"{name} must be a finite number >= 0, got {value!r}"
+    if not (_is_number(o["warm_min_known"]) and 0.0 <= o["warm_min_known"] <= 1.0):
+        yield f"warm_min_known must be in [0, 1], got {o['warm_min_known']!r}"
+    if o["dtype"] not in ("float32", "float64"):
+        yield f"dtype must be float32 or float64, got {o['dtype']!r}"
+    if o["hidden_width"] is not None and (not _is_int(o["hidden_width"])
+                                          or o["hidden_width"] < 3):
+        yield f"hidden_width must be None or an integer >= 3 (H has rank 3), " \
+              f"got {o['hidden_width']!r}"
+    if not _is_int(o["scalable_width"]) or o["scalable_width"] < 3:
+        yield f"scalable_width must be an integer >= 3 (H has rank 3), " \
+              f"got {o['scalable_width']!r}"
+    if o["threads"] is not None and (not _is_int(o["threads"]) or o["threads"] < 1):
+        yield f"threads must be None or an integer >= 1, got {o['threads']!r}"
+    if not _DEVICE.fullmatch(str(o["device"])):
+        yield f"device must be cpu, cuda, cuda:N or auto, got {o['device']!r}"
+    if not _is_int(o["seed"]) or o["seed"] < 0:
+        yield f"seed must be an integer >= 0, got {o['seed']!r}"
 
 
 _DEVICE = re.compile(r"cpu|auto|cuda(:\d+)?")

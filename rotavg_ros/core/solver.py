@@ -12,7 +12,7 @@ import os
 import time
 from collections.abc import Hashable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -22,13 +22,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from rotavg_ros.core.chordal_init import chordal_rotations
-from rotavg_ros.core.dmf.fit import (
-    DMFFit,
-    DMFSettings,
-    fit_symmetric,
-    fit_symmetric_lbfgs,
-    fit_vanilla,
-)
+from rotavg_ros.core.dmf import DMFFit, FitSpec, fit_symmetric, fit_symmetric_lbfgs, fit_vanilla
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
@@ -116,24 +110,23 @@ class RotationAverager:
             for k, node_id in enumerate(ids):
                 if node_id in initial:
                     init[k] = initial[node_id]
-        result = average_rotations(
+        out = average_rotations(
             graph.num_nodes, edges.i, edges.j, edges.R, edges.weight, self.options,
             anchor=anchor_idx, initial=init, initial_depth=initial_depth,
         )
-        rotations, component, comp_anchor, depth, kept, costs, duration, iterations = result
-        residuals = _residuals_deg(rotations, edges.i, edges.j, edges.R)
+        residuals = _residuals_deg(out.rotations, edges.i, edges.j, edges.R)
         return SolveResult(
             node_ids=ids,
-            rotations=rotations,
-            component=component,
-            anchors=[ids[a] for a in comp_anchor],
-            depth=depth,
+            rotations=out.rotations,
+            component=out.component,
+            anchors=[ids[a] for a in out.component_anchor],
+            depth=out.depth,
             residuals_deg=residuals,
-            edge_inlier=kept,
-            num_filtered=int((~kept).sum()),
-            cost_by_depth=costs,
-            duration_s=duration,
-            iterations_by_depth=iterations,
+            edge_inlier=out.kept,
+            num_filtered=int((~out.kept).sum()),
+            cost_by_depth=out.cost_by_depth,
+            duration_s=out.duration_s,
+            iterations_by_depth=out.iterations_by_depth,
         )
 
     def solve_component(
@@ -147,9 +140,9 @@ class RotationAverager:
         opt = self.options
         w = w / np.mean(w)
         tree_rot: FloatArray | None = None
-        if opt.use_filter:
-            filt = filter_edges(i, j, R, w, n, opt.sigma, opt.use_support_count,
-                                opt.sigma_untested)
+        if opt.filter.use_filter:
+            filt = filter_edges(i, j, R, w, n, opt.filter.sigma, opt.filter.use_support_count,
+                                opt.filter.sigma_untested)
             kept = filt.kept
             tree_rot = filt.tree_rotations
             self._say(f"filter: {filt.num_triangles} triangles, removed "
@@ -160,12 +153,13 @@ class RotationAverager:
         sparse = self.is_sparse(n, fi.size)
         self._say(f"{'sparse' if sparse else 'dense'} mode: {n} nodes, {fi.size} edges")
         H0 = None
-        if initial is not None and opt.explicit_constraint:
+        if initial is not None and opt.dense.explicit_constraint:
             known = np.all(np.isfinite(initial.reshape(n, 9)), axis=1)
-            if known.mean() >= opt.warm_min_known:
+            if known.mean() >= opt.warm.min_known:
                 if tree_rot is None:
                     tree_rot = chordal_rotations(n, fi, fj, fR, fw)
-                H0 = warm_start_rotations(initial, known, tree_rot, fi, fj, fR, opt.sigma)
+                H0 = warm_start_rotations(initial, known, tree_rot, fi, fj, fR,
+                                          opt.filter.sigma)
                 self._say(f"warm start: {int(known.sum())}/{n} nodes known")
         fits = self._fit_depths(n, fi, fj, fR, fw, sparse, H0, initial_depth)
         costs: dict[int, float] = {}
@@ -191,7 +185,7 @@ class RotationAverager:
         if mode not in ("auto", "dense", "sparse"):
             raise ValueError(f"mode must be auto, dense or sparse, got {mode!r}")
         if mode == "auto":
-            return 2.0 * num_edges / max(num_nodes, 1) < self.options.sparse_mean_degree
+            return 2.0 * num_edges / max(num_nodes, 1) < self.options.sparse.mean_degree
         return mode == "sparse"
 
     # ----------------------------------------------------------------- private
@@ -200,46 +194,39 @@ class RotationAverager:
         warm: FloatArray | None = None, warm_depth: int | None = None,
     ) -> dict[int, DMFFit]:
         opt = self.options
-        device = resolve_device(opt.device)
-        width = opt.hidden_width or (3 * n if n <= opt.max_full_width_nodes
-                                     else opt.scalable_width)
-        depths = list(dict.fromkeys(opt.sparse_depths if sparse else opt.depths))
+        dense, runtime = opt.dense, opt.runtime
+        device = resolve_device(runtime.device)
+        width = dense.hidden_width or (3 * n if n <= dense.max_full_width_nodes
+                                       else dense.scalable_width)
+        depths = list(dict.fromkeys(opt.sparse.depths if sparse else dense.depths))
         if warm is not None and not sparse:
             depths = [warm_depth if warm_depth in depths else depths[0]]
         H0: FloatArray | None = warm
         delta = 0.0
-        if sparse and opt.explicit_constraint:
+        if sparse and dense.explicit_constraint:
             if H0 is None:
                 H0 = chordal_rotations(n, i, j, R, w)
             pred = np.einsum("eab,ecb->eac", H0[i], H0[j])
-            delta = opt.huber_factor * float(np.median(np.abs(pred - R)))
-        graphed = opt.cuda_graphs and opt.explicit_constraint and not sparse
-        workers, intra = _thread_plan(len(depths), opt.threads, device, graphed)
+            delta = opt.sparse.huber_factor * float(np.median(np.abs(pred - R)))
+        graphed = runtime.cuda_graphs and dense.explicit_constraint and not sparse
+        workers, intra = _thread_plan(len(depths), runtime.threads, device, graphed)
 
         def run(depth: int) -> DMFFit:
-            s = DMFSettings(
-                depth=depth, hidden_width=width, iterations=opt.iterations, lr=opt.lr,
-                reweighting=opt.reweighting, reweight_every=opt.reweight_every,
-                warmup=opt.warmup, init_scale=opt.init_scale, seed=opt.seed + depth,
-                device=device, huber_delta=delta, tolerance=opt.tolerance,
-                dtype=opt.dtype, cuda_graph=opt.cuda_graphs,
-            )
+            fit = FitSpec(depth=depth, hidden_width=width, seed=runtime.seed + depth,
+                          device=device, cuda_graph=runtime.cuda_graphs)
 
             def report(step: int, loss: float) -> None:
                 self._say(f"depth {depth}: iteration {step}, loss {loss:.4g}")
 
-            if not opt.explicit_constraint:
-                return fit_vanilla(n, i, j, R, w, s, report)
+            if not dense.explicit_constraint:
+                return fit_vanilla(n, i, j, R, w, dense, fit, report)
             if sparse and H0 is not None:
-                s.diagonal_weight = opt.sparse_diagonal_weight
-                return fit_symmetric_lbfgs(
-                    n, i, j, R, w, s, H0, rounds=opt.sparse_rounds,
-                    inner_iterations=opt.sparse_inner_iterations,
-                    outlier_factor=opt.sparse_outlier_factor, progress=report)
-            if warm is not None:
-                s.iterations, s.lr, s.warmup = opt.warm_iterations, opt.warm_lr, 0
-                return fit_symmetric(n, i, j, R, w, s, report, H0=warm)
-            return fit_symmetric(n, i, j, R, w, s, report)
+                return fit_symmetric_lbfgs(n, i, j, R, w, opt.sparse, dense, fit, H0, delta,
+                                           progress=report)
+            if warm is not None:  # a short fit from the warm start, no warm-up
+                short = replace(dense, iterations=opt.warm.iterations, lr=opt.warm.lr, warmup=0)
+                return fit_symmetric(n, i, j, R, w, short, fit, report, H0=warm)
+            return fit_symmetric(n, i, j, R, w, dense, fit, report)
 
         previous = torch.get_num_threads()
         torch.set_num_threads(intra)
@@ -254,8 +241,8 @@ class RotationAverager:
             torch.set_num_threads(previous)
 
     def _say(self, text: str) -> None:
-        if self.options.progress is not None:
-            self.options.progress(text)
+        if self.options.runtime.progress is not None:
+            self.options.runtime.progress(text)
 
 
 def _thread_plan(
@@ -318,6 +305,27 @@ def warm_start_rotations(
     return out
 
 
+@dataclass
+class ArraySolution:
+    """What :func:`average_rotations` returns, in the graph's node indexing."""
+
+    rotations: FloatArray
+    """(N, 3, 3) world-to-node rotations; each component's anchor gets identity."""
+    component: IntArray
+    """(N,) component label of each node (0 = the anchor's, then by decreasing size)."""
+    component_anchor: list[int]
+    """Anchor node of each component, by label."""
+    depth: int
+    """Depth chosen for the largest component (0 if it has no edges)."""
+    kept: BoolArray
+    """(E,) whether each edge passed the filter."""
+    cost_by_depth: dict[int, float]
+    """Eq. 3 cost of each depth candidate (largest component)."""
+    duration_s: float
+    iterations_by_depth: dict[int, int]
+    """Iterations each depth's fit ran (largest component)."""
+
+
 def average_rotations(
     num_nodes: int,
     i: IntArray,
@@ -328,14 +336,8 @@ def average_rotations(
     anchor: int = 0,
     initial: FloatArray | None = None,
     initial_depth: int | None = None,
-) -> tuple[FloatArray, IntArray, list[int], int, BoolArray, dict[int, float], float,
-           dict[int, int]]:
-    """Array interface: solve each component; see :meth:`RotationAverager.solve`.
-
-    Returns ``(rotations, component, component_anchor, depth, kept, cost_by_depth,
-    duration_s, iterations_by_depth)`` where ``depth``, ``cost_by_depth`` and
-    ``iterations_by_depth`` belong to the largest component.
-    """
+) -> ArraySolution:
+    """Array interface: solve each component; see :meth:`RotationAverager.solve`."""
     t0 = time.perf_counter()
     averager = RotationAverager(options)
     i = np.asarray(i, np.int64)
@@ -370,8 +372,8 @@ def average_rotations(
         if nodes.size > best_size:
             depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
             iterations = sol.iterations_by_depth
-    return (rotations, labels, comp_anchor, depth, kept, costs, time.perf_counter() - t0,
-            iterations)
+    return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
+                         time.perf_counter() - t0, iterations)
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:

@@ -49,7 +49,10 @@ from rotavg_ros.app.accumulator import (
 from rotavg_ros.app.diagnostics import diagnostic_name, diagnostic_values
 from rotavg_ros.app.parameters import (
     NODE_NAME,
-    PARAMETER_DEFAULTS,
+    PARAMETER_TABLE,
+    FloatRange,
+    IntRange,
+    ParameterSpec,
     Settings,
     settings_from_parameters,
 )
@@ -98,104 +101,27 @@ class SolveOutcome:
     message: str
 
 
-def _descriptor(
-    description: str,
-    *,
-    fp_range: tuple[float, float] | None = None,
-    int_range: tuple[int, int] | None = None,
-    read_only: bool = False,
-    constraints: str = "",
-) -> ParameterDescriptor:
+def descriptor(spec: ParameterSpec) -> ParameterDescriptor:
+    """The ``ParameterDescriptor`` of one row of the parameter table."""
     desc = ParameterDescriptor(
-        description=description, read_only=read_only, additional_constraints=constraints
+        description=spec.description, read_only=spec.read_only,
+        additional_constraints=spec.constraint_text,
     )
-    if fp_range is not None:
+    if isinstance(spec.range, FloatRange):
         desc.floating_point_range = [
-            FloatingPointRange(from_value=fp_range[0], to_value=fp_range[1], step=0.0)
+            FloatingPointRange(from_value=spec.range.low, to_value=spec.range.high, step=0.0)
         ]
-    if int_range is not None:
-        desc.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=0)]
+    elif isinstance(spec.range, IntRange):
+        desc.integer_range = [
+            IntegerRange(from_value=spec.range.low, to_value=spec.range.high, step=0)
+        ]
     return desc
 
 
-# name -> descriptor; defaults (and checks) come from rotavg_ros.pipeline. See config/rotavg.yaml.
-_DESCRIPTORS: dict[str, ParameterDescriptor] = {
-    "world_frame": _descriptor(
-        "Frame id of the published orientations' header (the parent frame in TF).",
-        constraints="non-empty frame id without '/' prefix"),
-    "anchor_frame": _descriptor(
-        "Frame that gets the identity rotation; empty = the first frame accepted."),
-    "solve_period": _descriptor(
-        "Seconds between timer checks; a solve starts only if the graph changed.",
-        fp_range=(0.01, 3600.0), read_only=True),
-    "repeat_policy": _descriptor(
-        "How repeated measurements of one frame pair combine: merge (robust average, weights "
-        "add), latest (newest wins) or first (oldest wins).",
-        read_only=True, constraints="one of: merge, latest, first"),
-    "quaternion_tolerance": _descriptor(
-        "Accepted | |q| - 1 |; within it the quaternion is normalised, beyond it the edge is "
-        "rejected as non_unit_quaternion.", fp_range=(0.0, 0.5)),
-    "reference_variance": _descriptor(
-        "Per-axis rotation variance (rad^2) of an Odometry edge that gets weight 1; "
-        "weight = 3 * reference_variance / trace(rotation covariance). Default (1 deg)^2.",
-        fp_range=(1e-12, 10.0)),
-    "min_weight": _descriptor(
-        "Lower clamp of covariance-derived edge weights.", fp_range=(1e-9, 1e9)),
-    "max_weight": _descriptor(
-        "Upper clamp of covariance-derived edge weights.", fp_range=(1e-9, 1e9)),
-    "mode": _descriptor(
-        "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "
-        "L-BFGS, for chain-like SLAM graphs) or auto (by mean degree).",
-        constraints="one of: auto, dense, sparse"),
-    "depths": _descriptor(
-        "Candidate DMF depths (positive, even); the one with the lowest cost wins.",
-        constraints="non-empty list of positive even integers"),
-    "iterations": _descriptor(
-        "Gradient iterations of the DMF optimisation per depth.", int_range=(1, 10_000_000)),
-    "sigma": _descriptor(
-        "Spanning-tree filter threshold on the chordal distance d_chord(R_ij, R_ij^tree).",
-        fp_range=(0.0, 2.83)),
-    "seed": _descriptor("Random seed of the solver.", int_range=(0, 2**31 - 1)),
-    "graph_file": _descriptor(
-        "g2o file of the live graph (rotavg_ros.io.graph_store format): loaded at start when it "
-        "exists, written by ~/save_graph and on a clean shutdown; empty = no persistence.",
-        read_only=True),
-    "solve_in_subprocess": _descriptor(
-        "Run the solver in a child process (default) so a long solve cannot starve the "
-        "subscriptions of the interpreter lock; false runs it in the worker thread.",
-        read_only=True),
-    "solver_niceness": _descriptor(
-        "Added to the solver child process's nice value (POSIX), so solves use the CPU the "
-        "node and its neighbours (a SLAM front end) leave idle; 0 = same priority as the "
-        "node.", int_range=(0, 19), read_only=True),
-    "warm_start": _descriptor(
-        "Warm-start each re-solve from the previous solution (known nodes keep their "
-        "rotation, new ones start from the spanning tree; dense mode then runs a short "
-        "fit at the previous depth)."),
-    "device": _descriptor(
-        "Torch device of the solver: cpu, cuda, cuda:N or auto (CUDA when available).",
-        constraints="cpu, cuda, cuda:N or auto"),
-    "threads": _descriptor(
-        "Torch CPU threads for the solver, split among the depth candidates; 0 = one "
-        "thread per candidate, candidates in parallel up to the CPU count.", int_range=(0, 1024)),
-    "publish_markers": _descriptor(
-        "Publish ~/markers (RViz MarkerArray) after solves, when something subscribes."),
-    "marker_spacing": _descriptor(
-        "Grid spacing (m) of the marker layout (there are no translations to show).",
-        fp_range=(0.01, 100.0)),
-    "residual_warn_deg": _descriptor(
-        "Diagnostics turn WARN when the median inlier residual exceeds this (deg).",
-        fp_range=(0.0, 180.0)),
-    "qos_depth": _descriptor(
-        "KEEP_LAST depth of the reliable edge subscriptions.",
-        int_range=(1, 1_000_000), read_only=True),
-    "orientations_qos_depth": _descriptor(
-        "KEEP_LAST depth of ~/orientations; a solve publishes one message per node, so keep "
-        "it at least the number of nodes.", int_range=(1, 10_000_000), read_only=True),
-}
-# name -> (default, descriptor): every parameter the node declares.
+# name -> (default, descriptor): every parameter the node declares (from
+# rotavg_ros.app.parameters.PARAMETER_TABLE, as config/rotavg.yaml is).
 PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
-    name: (default, _DESCRIPTORS[name]) for name, default in PARAMETER_DEFAULTS.items()
+    spec.name: (spec.default, descriptor(spec)) for spec in PARAMETER_TABLE
 }
 
 

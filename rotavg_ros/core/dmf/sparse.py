@@ -1,0 +1,122 @@
+"""Sparse-graph fit: the H H^T model from a chordal warm start, entry-wise Huber loss,
+L-BFGS with outlier reweighting between runs (chain-like SLAM graphs)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from rotavg_ros.core.dmf.common import (
+    DMFFit,
+    EdgeBlocks,
+    FitSpec,
+    FloatArray,
+    IntArray,
+    factor_shapes,
+    h_t_from_nodes,
+    nodes_from_h_t,
+    soa_matmul,
+    warm_factors,
+)
+from rotavg_ros.core.optim.factor_chain import FactorChain
+from rotavg_ros.core.optim.lbfgs import minimize_lbfgs
+from rotavg_ros.core.options import DenseFitOptions, SparseFitOptions
+
+LBFGS_FTOL = 1e-12
+"""Sparse mode: an L-BFGS run ends when a step lowers the loss by less than this,
+relative to max(|loss|, 1)."""
+ROUND_TOLERANCE = 1e-3
+"""Sparse mode: the reweighting rounds end when one moves the factors by less than this,
+relative (|x - x_prev| / |x|). On sphere2500 (no outliers) later rounds only shaved the
+noise tail, 0.5-0.8 s each, and left the errors as they were (median 0.381 vs 0.379 deg
+after all 8); on a stream graph with 5% outliers the rounds that mattered moved x by
+1e-1 to 1e-2."""
+
+
+def fit_symmetric_lbfgs(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    s: SparseFitOptions, model: DenseFitOptions, fit: FitSpec, H0: FloatArray,
+    huber_delta: float, progress: Callable[[int, float], None] | None = None,
+) -> DMFFit:
+    """Sparse-graph variant: same H H^T model, entry-wise Huber loss, L-BFGS, warm start.
+
+    Chain-like SLAM graphs are badly conditioned for first-order steps from near zero
+    (information must diffuse along long chains), so this variant starts from ``H0`` (the
+    chordal solution) and uses L-BFGS on a smooth loss: Huber with ``delta`` =
+    ``huber_delta``, i.e. L2 on inlier-sized residuals and L1 beyond. Between the
+    ``s.rounds`` L-BFGS runs, weights are updated like Sec. IV-C but only above
+    ``s.outlier_factor * tau`` (tau = median chordal residual), so clean edges keep their
+    weight while gross outliers are scaled down by ``outlier_factor * tau / r``. Residuals
+    are first scaled by sqrt(initial weight), so each edge is judged against its own
+    stated noise level (SLAM graphs mix very different information matrices); the
+    rounds stop early once no edge is above that threshold, or once a round moved the
+    factors by less than ``ROUND_TOLERANCE`` (relative).
+
+    The optimiser is :func:`~rotavg_ros.core.optim.lbfgs.minimize_lbfgs` (float64, at most
+    ``s.inner_iterations`` steps per round, ending early when a step improves the loss by
+    less than ``LBFGS_FTOL`` relative); the gradient through the factors comes from
+    :class:`~rotavg_ros.core.optim.factor_chain.FactorChain`.
+    """
+    dev = fit.device
+    f64 = torch.float64
+    gen = torch.Generator().manual_seed(fit.seed)
+    shapes = factor_shapes(num_nodes, fit.depth, fit.hidden_width)
+    start = warm_factors(H0, shapes, model.init_scale, gen, dev)
+    x = torch.cat([f.detach().reshape(-1) for f in start])
+    flat = torch.zeros_like(x)  # the factors are views into it
+    flat_grad = torch.zeros_like(flat)
+    factors, offset = [], 0
+    for rows, cols in shapes:
+        factors.append(flat[offset:offset + rows * cols].view(rows, cols))
+        offset += rows * cols
+    chain = FactorChain(factors)
+    offset = 0
+    for f in factors:
+        f.grad = flat_grad[offset:offset + f.numel()].view_as(f)
+        offset += f.numel()
+    blocks = EdgeBlocks(num_nodes, i, j, dev)
+    tR = torch.as_tensor(R, dtype=f64, device=dev).permute(1, 2, 0).contiguous()
+    weights = torch.as_tensor(w, dtype=f64, device=dev).clone()
+    noise_scale = weights.sqrt()  # residual x sqrt(information): comparable across edges
+    eye = torch.eye(3, dtype=f64, device=dev)[:, :, None]
+    delta = max(huber_delta, 1e-9)
+
+    def huber(x: torch.Tensor) -> torch.Tensor:
+        a = x.abs()
+        return torch.where(a <= delta, 0.5 * x * x / delta, a - 0.5 * delta)
+
+    def loss_and_grad(x: torch.Tensor) -> tuple[float, torch.Tensor]:
+        flat.copy_(x)
+        Hn = nodes_from_h_t(chain.forward())
+        Hi, Hj, P = blocks.products(Hn)
+        D = P.sub_(tR)
+        Dd = soa_matmul(Hn, Hn, transpose_b=True).sub_(eye)
+        loss = (weights * huber(D).sum(dim=(0, 1))).sum() + s.diagonal_weight * huber(Dd).sum()
+        G = (D / delta).clamp_(-1.0, 1.0).mul_(weights)
+        grad = blocks.node_gradient(G, Hi, Hj)
+        grad.add_(soa_matmul((Dd / delta).clamp_(-1.0, 1.0), Hn), alpha=2.0 * s.diagonal_weight)
+        chain.backward(h_t_from_nodes(grad))
+        return float(loss), flat_grad.clone()
+
+    loss_val, total = float("nan"), 0
+    for rnd in range(s.rounds):
+        res = minimize_lbfgs(loss_and_grad, x, s.inner_iterations, ftol=LBFGS_FTOL)
+        moved = float((res.x - x).norm() / res.x.norm().clamp_min(1e-30))
+        x, loss_val, total = res.x, res.loss, total + res.iterations
+        if progress is not None:
+            progress(total, loss_val)
+        if not model.reweighting or rnd + 1 == s.rounds or (rnd > 0 and moved < ROUND_TOLERANCE):
+            break
+        with torch.no_grad():
+            flat.copy_(x)
+            Hn = nodes_from_h_t(chain.forward())
+            r = blocks.products(Hn)[2].sub_(tR).pow(2).sum(dim=(0, 1)).sqrt() * noise_scale
+            thresh = s.outlier_factor * torch.median(r)
+            scale = torch.where(r > thresh, thresh / r.clamp_min(1e-12), torch.ones_like(r))
+            weights *= scale
+            if float((1.0 - scale).abs().max()) < 1e-3:
+                break  # no edge is an outlier any more: converged
+    flat.copy_(x)
+    H = chain.product().reshape(num_nodes, 3, 3)
+    return DMFFit(H.cpu().numpy().copy(), weights.cpu().numpy(), loss_val, total)
