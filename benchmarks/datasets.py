@@ -13,14 +13,10 @@ from collections.abc import Hashable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-from numpy.typing import NDArray
-
+from rotavg_ros.core.types import FloatArray
 from rotavg_ros.core.view_graph import ViewGraph
 from rotavg_ros.io.g2o import read_g2o
 from rotavg_ros.io.onedsfm import read_1dsfm_npz, read_rotations_npz
-
-FloatArray = NDArray[np.float64]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SE_SYNC_GRAPHS = ("smallGrid3D", "parking-garage", "sphere2500", "torus3D")

@@ -36,14 +36,12 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from rotavg_ros.core.so3 import matrix_to_quat, project_to_so3
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
+from rotavg_ros.core.types import FloatArray, IntArray
 
 PeerFn = Callable[[int, ArrayLike, ArrayLike, ArrayLike, ArrayLike | None],
                   tuple[FloatArray, float]]

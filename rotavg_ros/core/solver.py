@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -27,12 +26,9 @@ from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.so3 import chordal_distance, geodesic_distance, project_to_so3
+from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
 from rotavg_ros.errors import SolverError
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
-BoolArray = NDArray[np.bool_]
 
 
 @dataclass
@@ -270,7 +266,7 @@ def _thread_plan(
 
 
 def warm_start_rotations(
-    initial: FloatArray, known: NDArray[np.bool_], tree: FloatArray,
+    initial: FloatArray, known: BoolArray, tree: FloatArray,
     i: IntArray, j: IntArray, R: FloatArray, sigma: float,
 ) -> FloatArray:
     """Known nodes keep ``initial`` unless their edges side with the tree; the others get
@@ -291,7 +287,7 @@ def warm_start_rotations(
         return out
     n = out.shape[0]
 
-    def agreeing(Ri: FloatArray, Rj: FloatArray) -> NDArray[np.float64]:
+    def agreeing(Ri: FloatArray, Rj: FloatArray) -> FloatArray:
         return (chordal_distance(R, np.einsum("eab,ecb->eac", Ri, Rj)) <= sigma).astype(float)
 
     current = agreeing(out[i], out[j])

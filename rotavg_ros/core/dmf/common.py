@@ -22,14 +22,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
-from numpy.typing import NDArray
 
 from rotavg_ros.core.options import DenseFitOptions
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
+from rotavg_ros.core.types import FloatArray, IntArray
 
 
 @dataclass(frozen=True)
