@@ -86,3 +86,19 @@ def test_summary_counts() -> None:
     text = summarize([row(OURS, 3.0, 1.0), row("gtsam_chordal", 1.0, 0.96)])
     assert "within 10% (or 0.05°) of the best peer's median on 1/1" in text
     assert "best peer's mean on 1/1" in text
+
+
+def test_gnc_peer_with_known_inliers_runs() -> None:
+    from benchmarks import peers
+    from benchmarks.regimes import GNC_ODO, methods_for
+
+    case = _tiny_chain()
+    avail = peers.available_peers()
+    methods = dict(methods_for(case, avail))
+    assert GNC_ODO in methods and ORACLE in methods
+    if not avail.get("gtsam_gnc_tls"):
+        pytest.skip("gtsam not installed")
+    r = run_method(case, GNC_ODO, timeout=60.0)
+    assert r.status == "ok", r.note
+    assert f"{case.num_nodes - 1} known inliers" in r.note
+    assert r.errors is not None and len(r.errors) == case.num_nodes
