@@ -1,0 +1,467 @@
+"""Generators and the case list of the regime benchmark (``python -m benchmarks.regimes``).
+
+Conventions (as everywhere in the project): node rotations ``R_i`` are **world-to-node**;
+edge ``k`` joins ``i[k] < j[k]`` and carries ``R[k] ~= R_i R_j^T``. Angles are in degrees
+unless a name says ``rad``.
+
+Noise model: a measurement is ``R_i R_j^T`` multiplied on the right by a rotation about a
+uniformly random axis through an angle ``|N(0, sigma)|`` (so ``sigma`` is the standard
+deviation of the error angle's normal before folding; mean error angle ``0.80 sigma``).
+False edges are Haar-random rotations, redrawn until they are at least
+:data:`MIN_FALSE_DEG` away from the truth. Grouped false loop closures (perceptual aliasing,
+as in the Vertigo / switchable-constraints generators) are runs of ``k`` new edges
+``(a + t, b + t)``, ``t < k``, all equal to ``R_{a+t} W R_{b+t}^T`` (times noise) for one
+wrong world rotation ``W`` per group: they agree with each other and with the odometry, and
+disagree with the truth by the angle of ``W``.
+
+Every case is built from a fixed seed, so the same name gives the same edges bit for bit.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import csr_matrix
+
+from benchmarks.datasets import load_ellis_island, load_se_sync
+from rotavg_ros.core.so3 import (
+    exp_map,
+    random_rotations,
+    rotation_about_axis,
+    rotation_angle,
+)
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+MIN_FALSE_DEG = 30.0
+"""Every generated false edge is at least this far (geodesic angle) from the truth."""
+
+FAMILIES = ("slam", "chain", "sfm", "real")
+
+
+@dataclass
+class RegimeCase:
+    """One benchmark problem: edges, ground truth and what is known about the edges."""
+
+    name: str
+    family: str
+    """``slam`` (regenerated on SLAM topologies), ``chain`` (synthetic odometry chains),
+    ``sfm`` (Ellis Island and dense synthetic graphs), ``real`` (SE-Sync as measured)."""
+    num_nodes: int
+    i: IntArray
+    j: IntArray
+    R: FloatArray
+    gt: FloatArray
+    """(N, 3, 3) world-to-node ground-truth rotations (or certified reference)."""
+    weight: FloatArray | None = None
+    """Edge information weights (g2o data only); None = unweighted."""
+    inlier: BoolArray | None = None
+    """True for the edges that are not deliberately false; None when unknown (real data:
+    no oracle row)."""
+    noise_deg: float | None = None
+    """The generating noise level, if known (GNC-TLS takes its sigma from it)."""
+    description: str = ""
+    sigma_deg: float = 5.0
+    """Noise scale handed to GNC-TLS for unweighted edges: the generating noise level
+    floored at 1 deg; the g2o information's ``1/sqrt(w)`` for SE-Sync as measured; a fixed
+    5 deg for Ellis Island."""
+
+    @property
+    def num_edges(self) -> int:
+        return int(self.i.shape[0])
+
+    @property
+    def odometry(self) -> BoolArray:
+        """Edges between consecutive ids (``|i - j| == 1``): odometry in SLAM graphs."""
+        return np.abs(self.i - self.j) == 1
+
+    @property
+    def has_odometry(self) -> bool:
+        return self.family in ("slam", "chain", "real") and bool(self.odometry.any())
+
+
+# ----------------------------------------------------------------------------- generators
+
+
+def rng_for(name: str, seed: int = 0) -> np.random.Generator:
+    """A generator seeded from the case name and ``seed`` (stable across runs)."""
+    return np.random.default_rng([zlib.crc32(name.encode()), seed])
+
+
+def relative(gt: FloatArray, i: IntArray, j: IntArray) -> FloatArray:
+    """Exact measurements ``R_i R_j^T``."""
+    return gt[i] @ np.swapaxes(gt[j], -1, -2)
+
+
+def random_axes(n: int, rng: np.random.Generator) -> FloatArray:
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def perturb(R: FloatArray, sigma_deg: float, rng: np.random.Generator) -> FloatArray:
+    """``R_k N_k`` with ``N_k`` a rotation by ``|N(0, sigma)|`` about a random axis."""
+    n = R.shape[0]
+    if sigma_deg <= 0 or n == 0:
+        return R.copy()
+    angles = np.abs(rng.normal(0.0, np.radians(sigma_deg), size=n))
+    return R @ rotation_about_axis(random_axes(n, rng), angles)
+
+
+def false_rotations(truth: FloatArray, rng: np.random.Generator,
+                    min_deg: float = MIN_FALSE_DEG) -> FloatArray:
+    """Haar-random rotations, each redrawn until it is ``>= min_deg`` from ``truth[k]``."""
+    out = random_rotations(truth.shape[0], rng)
+    bad = np.degrees(rotation_angle(out @ np.swapaxes(truth, -1, -2))) < min_deg
+    while bad.any():
+        out[bad] = random_rotations(int(bad.sum()), rng)
+        bad = np.degrees(rotation_angle(out @ np.swapaxes(truth, -1, -2))) < min_deg
+    return out
+
+
+def sorted_edges(i: IntArray, j: IntArray) -> tuple[IntArray, IntArray]:
+    return np.minimum(i, j).astype(np.int64), np.maximum(i, j).astype(np.int64)
+
+
+def replace_with_false(R: FloatArray, true_R: FloatArray, candidates: IntArray,
+                       fraction: float, rng: np.random.Generator) -> BoolArray:
+    """Replace ``round(fraction * len(candidates))`` of the candidate edges (in place) by
+    false rotations; returns the inlier mask."""
+    inlier = np.ones(R.shape[0], dtype=bool)
+    count = int(round(fraction * candidates.shape[0]))
+    if count:
+        pick = rng.choice(candidates, size=count, replace=False)
+        R[pick] = false_rotations(true_R[pick], rng)
+        inlier[pick] = False
+    return inlier
+
+
+def grouped_false_edges(gt: FloatArray, existing: set[tuple[int, int]], groups: int,
+                        size_range: tuple[int, int], min_gap: int, noise_deg: float,
+                        rng: np.random.Generator, stride: int = 1,
+                        forbid: Callable[[int, int], bool] | None = None,
+                        ) -> tuple[IntArray, IntArray, FloatArray]:
+    """``groups`` runs of mutually consistent false closures (see the module docstring).
+
+    Each run joins ``a + stride*t`` to ``b + stride*t`` for ``t < k``, ``k`` uniform in
+    ``size_range``, ``|a - b| >= min_gap``, all with ``R_{a'} W R_{b'}^T`` for one ``W`` at
+    least :data:`MIN_FALSE_DEG` from identity. Pairs already in ``existing`` (updated) or
+    refused by ``forbid(a', b')`` are skipped.
+    """
+    n = gt.shape[0]
+    ii: list[int] = []
+    jj: list[int] = []
+    Rs: list[FloatArray] = []
+    made = 0
+    tries = 0
+    while made < groups and tries < 1000 * max(groups, 1):
+        tries += 1
+        k = int(rng.integers(size_range[0], size_range[1] + 1))
+        span = stride * (k - 1) + 1
+        if n - span < 1:
+            break
+        a, b = (int(x) for x in rng.integers(0, n - span + 1, size=2))
+        if abs(a - b) < min_gap:
+            continue
+        W = false_rotations(np.eye(3)[None], rng)[0]
+        pairs = [(a + stride * t, b + stride * t) for t in range(k)]
+        pairs = [(min(p), max(p)) for p in pairs]
+        if any(p in existing or (forbid is not None and forbid(*p)) for p in pairs):
+            continue
+        for p, q in pairs:
+            existing.add((p, q))
+            ii.append(p)
+            jj.append(q)
+            Rs.append(gt[p] @ W @ gt[q].T)
+        made += 1
+    if not ii:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 3))
+    R = perturb(np.stack(Rs), noise_deg, rng)
+    return np.asarray(ii, np.int64), np.asarray(jj, np.int64), R
+
+
+def triangle_count(n: int, i: IntArray, j: IntArray) -> int:
+    """Number of triangles of the undirected simple graph (``trace(A^3) / 6``)."""
+    A = csr_matrix((np.ones(2 * i.shape[0]), (np.r_[i, j], np.r_[j, i])), shape=(n, n))
+    A.data[:] = 1.0
+    return int(round((A @ A).multiply(A).sum() / 6.0))
+
+
+# ----------------------------------------------------------------------- SLAM topologies
+
+
+def slam_case(name: str, shared: Path, graph: str, *, noise_deg: float = 1.0,
+              random_false: float = 0.0, groups: int = 0, seed: int = 0) -> RegimeCase:
+    """Measurements regenerated on a real SLAM graph's edges, against its reference.
+
+    ``random_false``: fraction of the non-odometry edges replaced by false rotations;
+    ``groups``: runs of 5-10 grouped false closures added (min gap 50 ids).
+    """
+    bench = load_se_sync(shared, graph)
+    n = bench.graph.num_nodes
+    ids = bench.graph.node_ids
+    gt = np.stack([bench.reference[k] for k in ids])
+    e = bench.graph.edge_arrays()
+    i, j = sorted_edges(e.i, e.j)
+    rng = rng_for(name, seed)
+    truth = relative(gt, i, j)
+    R = perturb(truth, noise_deg, rng)
+    loop = np.flatnonzero(np.abs(i - j) != 1)
+    inlier = replace_with_false(R, truth, loop, random_false, rng)
+    if groups:
+        existing = set(zip(i.tolist(), j.tolist(), strict=True))
+        gi, gj, gR = grouped_false_edges(gt, existing, groups, (5, 10), 50, noise_deg, rng)
+        i, j, R = np.r_[i, gi], np.r_[j, gj], np.concatenate([R, gR])
+        inlier = np.r_[inlier, np.zeros(gi.shape[0], bool)]
+    desc = f"{graph} edges, noise {noise_deg:g} deg"
+    if random_false:
+        desc += f", {random_false:.0%} of loop closures false"
+    if groups:
+        desc += f", {groups} groups ({gi.shape[0]} edges) of grouped false closures"
+    return RegimeCase(name, "slam", n, i, j, R, gt, None, inlier, noise_deg, desc,
+                      max(noise_deg, 1.0))
+
+
+# ---------------------------------------------------------------------------- chains
+
+
+def chain_trajectory(n: int, rng: np.random.Generator, step_deg: float = 4.0) -> FloatArray:
+    """Smooth random-walk world-to-node rotations: the angular velocity is an AR(1)
+    process with a stationary per-step angle of about ``step_deg``."""
+    omega = np.zeros(3)
+    R = np.empty((n, 3, 3))
+    R[0] = random_rotations(1, rng)[0]
+    scale = np.radians(step_deg) / np.sqrt(3.0)
+    for k in range(1, n):
+        omega = 0.9 * omega + np.sqrt(1 - 0.81) * rng.normal(0.0, scale, size=3)
+        R[k] = exp_map(omega[None])[0] @ R[k - 1]
+    return R
+
+
+def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float = 0.0,
+               false_grouped: float = 0.0, odo_noise_deg: float = 1.5,
+               loop_noise_deg: float = 2.0, seed: int = 0) -> RegimeCase:
+    """An odometry chain ``(k, k+1)`` plus sparse loop closures and no triangles.
+
+    ``closures`` true loop closures between keyframes at least 20 apart, each rejected
+    when it would close a triangle (its ends share a neighbour) or when it shares both
+    ends' neighbourhoods (within 1 id) with an earlier closure. False closures: a fraction
+    ``false_random`` (random rotations, same placement rules) and ``false_grouped``
+    (runs of 4-8 mutually consistent ones with stride 2, see the module docstring) of all
+    closures; these fractions are of the final closure count.
+    """
+    rng = rng_for(name, seed)
+    gt = chain_trajectory(num_nodes, rng)
+    n_false = false_random + false_grouped
+    total = int(round(closures / max(1e-9, 1.0 - n_false)))
+    n_rand = int(round(false_random * total))
+    n_grp = total - closures - n_rand
+    nbrs: list[set[int]] = [set() for _ in range(num_nodes)]
+    for k in range(num_nodes - 1):
+        nbrs[k].add(k + 1)
+        nbrs[k + 1].add(k)
+    used: set[tuple[int, int]] = set()
+
+    def bad(a: int, b: int) -> bool:
+        if a == b or abs(a - b) < 20 or (a, b) in used or nbrs[a] & nbrs[b]:
+            return True
+        return any((a + da, b + db) in used for da in (-1, 0, 1) for db in (-1, 0, 1))
+
+    def add(a: int, b: int) -> None:
+        used.add((a, b))
+        nbrs[a].add(b)
+        nbrs[b].add(a)
+
+    def sample(count: int) -> list[tuple[int, int]]:
+        out: list[tuple[int, int]] = []
+        while len(out) < count:
+            a, b = sorted(int(x) for x in rng.integers(0, num_nodes, size=2))
+            if not bad(a, b):
+                add(a, b)
+                out.append((a, b))
+        return out
+
+    true_pairs = sample(closures)
+    rand_pairs = sample(n_rand)
+    gi_l: list[int] = []
+    gj_l: list[int] = []
+    g_R: list[FloatArray] = []
+    while len(gi_l) < n_grp:
+        k = min(int(rng.integers(4, 9)), n_grp - len(gi_l))
+        gi, gj, gR = grouped_false_edges(gt, set(used), 1, (k, k), 40, loop_noise_deg, rng,
+                                         stride=2, forbid=bad)
+        for a, b in zip(gi.tolist(), gj.tolist(), strict=True):
+            add(a, b)
+        gi_l += gi.tolist()
+        gj_l += gj.tolist()
+        g_R += list(gR)
+    odo_i = np.arange(num_nodes - 1, dtype=np.int64)
+    R_odo = perturb(relative(gt, odo_i, odo_i + 1), odo_noise_deg, rng)
+    ti = np.asarray([p[0] for p in true_pairs], np.int64)
+    tj = np.asarray([p[1] for p in true_pairs], np.int64)
+    R_true = perturb(relative(gt, ti, tj), loop_noise_deg, rng)
+    ri = np.asarray([p[0] for p in rand_pairs], np.int64)
+    rj = np.asarray([p[1] for p in rand_pairs], np.int64)
+    R_rand = false_rotations(relative(gt, ri, rj), rng)
+    i = np.r_[odo_i, ti, ri, np.asarray(gi_l, np.int64)]
+    j = np.r_[odo_i + 1, tj, rj, np.asarray(gj_l, np.int64)]
+    R = np.concatenate([R_odo, R_true, R_rand, np.stack(g_R) if g_R else np.zeros((0, 3, 3))])
+    inlier = np.r_[np.ones(num_nodes - 1 + closures, bool),
+                   np.zeros(n_rand + len(gi_l), bool)]
+    desc = (f"chain {num_nodes} keyframes, odo noise {odo_noise_deg:g} deg, {closures} true "
+            f"closures ({loop_noise_deg:g} deg), {n_rand} random + {len(gi_l)} grouped false")
+    noise = max(odo_noise_deg, loop_noise_deg)
+    return RegimeCase(name, "chain", num_nodes, i, j, R, gt, None, inlier, noise, desc,
+                      max(noise, 1.0))
+
+
+# ----------------------------------------------------------------------- SfM / dense
+
+
+def dense_case(name: str, num_nodes: int, degree: float, *, outliers: float,
+               noise_deg: float = 2.0, seed: int = 0) -> RegimeCase:
+    """Erdos-Renyi graph with mean degree ``degree`` (plus a random Hamiltonian path so it
+    is connected), Haar ground truth, ``noise_deg`` noise, and a fraction ``outliers`` of
+    all edges replaced by false rotations."""
+    rng = rng_for(name, seed)
+    n = num_nodes
+    gt = random_rotations(n, rng)
+    p = min(1.0, degree / (n - 1))
+    a, b = np.triu_indices(n, 1)
+    keep = rng.random(a.shape[0]) < p
+    perm = rng.permutation(n)
+    path = set(zip(np.minimum(perm[:-1], perm[1:]).tolist(),
+                   np.maximum(perm[:-1], perm[1:]).tolist(), strict=True))
+    pairs = set(zip(a[keep].tolist(), b[keep].tolist(), strict=True)) | path
+    ij = np.asarray(sorted(pairs), np.int64)
+    i, j = ij[:, 0], ij[:, 1]
+    truth = relative(gt, i, j)
+    R = perturb(truth, noise_deg, rng)
+    inlier = replace_with_false(R, truth, np.arange(i.shape[0]), outliers, rng)
+    desc = (f"random graph N={n}, mean degree {2 * i.shape[0] / n:.0f}, noise "
+            f"{noise_deg:g} deg, {outliers:.0%} outlier edges")
+    return RegimeCase(name, "sfm", n, i, j, R, gt, None, inlier, noise_deg, desc,
+                      max(noise_deg, 1.0))
+
+
+def ellis_case(name: str, shared: Path, *, extra: float = 0.0, seed: int = 0) -> RegimeCase:
+    """Ellis Island (GT cameras only), optionally with ``extra * E`` false edges: random
+    unobserved pairs carrying random rotations; the original edges count as inliers. The
+    graph is nearly complete (5,641 unobserved pairs, 28% of E), so beyond that the rest
+    replace the measurements of random existing edges (which then count as outliers)."""
+    bench = load_ellis_island(shared)
+    ids = bench.graph.node_ids
+    n = len(ids)
+    gt = np.stack([bench.reference[k] for k in ids])
+    e = bench.graph.edge_arrays()
+    i, j, R = e.i.astype(np.int64), e.j.astype(np.int64), e.R.copy()
+    inlier: BoolArray | None = None
+    if extra:
+        rng = rng_for(name, seed)
+        observed = set(zip(i.tolist(), j.tolist(), strict=True))
+        a, b = np.triu_indices(n, 1)
+        free = np.asarray([k for k, p in enumerate(zip(a.tolist(), b.tolist(), strict=True))
+                           if p not in observed])
+        count = int(round(extra * i.shape[0]))
+        added = min(count, free.shape[0])
+        pick = np.sort(rng.choice(free, size=added, replace=False))
+        ni, nj = a[pick].astype(np.int64), b[pick].astype(np.int64)
+        nR = false_rotations(relative(gt, ni, nj), rng)
+        inlier = np.r_[np.ones(i.shape[0], bool), np.zeros(added, bool)]
+        if count > added:  # nearly complete graph: corrupt existing edges for the rest
+            old = np.sort(rng.choice(i.shape[0], size=count - added, replace=False))
+            R[old] = false_rotations(relative(gt, i[old], j[old]), rng)
+            inlier[old] = False
+        i, j, R = np.r_[i, ni], np.r_[j, nj], np.concatenate([R, nR])
+    desc = "Ellis Island, 1DSfM measurements, GT cameras only"
+    if extra:
+        desc += f", + {extra:.0%} random edges"
+    return RegimeCase(name, "sfm", n, i, j, R, gt, None, inlier, None, desc)
+
+
+# ---------------------------------------------------------------------- real SE-Sync
+
+
+def real_case(name: str, shared: Path, graph: str) -> RegimeCase:
+    """An SE-Sync graph as measured (g2o rotations and information weights)."""
+    bench = load_se_sync(shared, graph)
+    ids = bench.graph.node_ids
+    gt = np.stack([bench.reference[k] for k in ids])
+    e = bench.graph.edge_arrays()
+    w = None if np.all(e.weight == e.weight[0]) else e.weight.copy()
+    sigma = float(np.degrees(1.0 / np.sqrt(np.median(e.weight))))
+    return RegimeCase(name, "real", len(ids), e.i.astype(np.int64), e.j.astype(np.int64),
+                      e.R.copy(), gt, w, None, None, f"{graph} as measured (g2o)", sigma)
+
+
+# ------------------------------------------------------------------------ case list
+
+CaseBuilder = Callable[[Path], RegimeCase]
+
+
+def _slam(name: str, graph: str, **kw: float) -> tuple[str, CaseBuilder]:
+    return name, lambda shared: slam_case(name, shared, graph, **kw)  # type: ignore[arg-type]
+
+
+def all_cases() -> dict[str, CaseBuilder]:
+    """Every case of the suite, by name, in run order (cheap to call: builds nothing)."""
+    cases: list[tuple[str, CaseBuilder]] = [
+        # SLAM topologies, regenerated measurements. Outlier-only cases carry 1 deg noise.
+        _slam("slam/smallGrid3D/noise1", "smallGrid3D", noise_deg=1.0),
+        _slam("slam/smallGrid3D/noise5", "smallGrid3D", noise_deg=5.0),
+        _slam("slam/smallGrid3D/noise10", "smallGrid3D", noise_deg=10.0),
+        _slam("slam/smallGrid3D/noise20", "smallGrid3D", noise_deg=20.0),
+        _slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10),
+        _slam("slam/smallGrid3D/rand20", "smallGrid3D", random_false=0.20),
+        _slam("slam/smallGrid3D/grouped", "smallGrid3D", groups=3),
+        _slam("slam/smallGrid3D/noise10+rand10", "smallGrid3D", noise_deg=10.0,
+              random_false=0.10),
+        _slam("slam/parking-garage/noise5", "parking-garage", noise_deg=5.0),
+        _slam("slam/parking-garage/noise20", "parking-garage", noise_deg=20.0),
+        _slam("slam/parking-garage/rand5", "parking-garage", random_false=0.05),
+        _slam("slam/parking-garage/rand20", "parking-garage", random_false=0.20),
+        _slam("slam/parking-garage/grouped", "parking-garage", groups=8),
+        _slam("slam/parking-garage/noise5+rand5", "parking-garage", noise_deg=5.0,
+              random_false=0.05),
+        _slam("slam/sphere2500/noise10", "sphere2500", noise_deg=10.0),
+        _slam("slam/sphere2500/rand5", "sphere2500", random_false=0.05),
+        _slam("slam/sphere2500/noise5+grouped", "sphere2500", noise_deg=5.0, groups=10),
+        _slam("slam/torus3D/noise1", "torus3D", noise_deg=1.0),
+        _slam("slam/torus3D/rand10", "torus3D", random_false=0.10),
+        # Plain chains: odometry + sparse closures, no triangles.
+        ("chain/300/clean", lambda s: chain_case("chain/300/clean", 300, closures=20)),
+        ("chain/300/rand20", lambda s: chain_case("chain/300/rand20", 300, closures=16,
+                                                  false_random=0.20)),
+        ("chain/1000/rand40", lambda s: chain_case("chain/1000/rand40", 1000, closures=36,
+                                                   false_random=0.40)),
+        ("chain/1000/grouped30", lambda s: chain_case("chain/1000/grouped30", 1000,
+                                                      closures=42, false_grouped=0.30)),
+        ("chain/3000/mixed35", lambda s: chain_case("chain/3000/mixed35", 3000, closures=100,
+                                                    false_random=0.15, false_grouped=0.20)),
+        # SfM / dense.
+        ("sfm/ellis", lambda s: ellis_case("sfm/ellis", s)),
+        ("sfm/ellis+15", lambda s: ellis_case("sfm/ellis+15", s, extra=0.15)),
+        ("sfm/ellis+30", lambda s: ellis_case("sfm/ellis+30", s, extra=0.30)),
+        ("sfm/dense100/out10", lambda s: dense_case("sfm/dense100/out10", 100, 50, outliers=0.1)),
+        ("sfm/dense100/out50", lambda s: dense_case("sfm/dense100/out50", 100, 50, outliers=0.5)),
+        ("sfm/dense400/out10", lambda s: dense_case("sfm/dense400/out10", 400, 40, outliers=0.1)),
+        ("sfm/dense400/out30", lambda s: dense_case("sfm/dense400/out30", 400, 40, outliers=0.3)),
+        ("sfm/dense400/out50", lambda s: dense_case("sfm/dense400/out50", 400, 40, outliers=0.5)),
+        ("sfm/dense1000/out30", lambda s: dense_case("sfm/dense1000/out30", 1000, 16,
+                                                     outliers=0.3)),
+        # Real measurements.
+        *[(f"real/{g}", (lambda g: lambda s: real_case(f"real/{g}", s, g))(g))
+          for g in ("smallGrid3D", "parking-garage", "sphere2500", "torus3D")],
+    ]
+    return dict(cases)
+
+
+QUICK = ("slam/smallGrid3D/noise5", "slam/smallGrid3D/grouped", "chain/300/rand20",
+         "sfm/dense100/out50", "real/smallGrid3D")
+"""A small fast subset (``--quick``)."""

@@ -1,0 +1,104 @@
+"""Fast subset of the regime benchmark: generators are deterministic and correct, and our
+solver runs and is scored on tiny cases (no claim that it beats the peers)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks import regime_cases as rc
+from benchmarks.regimes import ORACLE, OURS, Result, run_method, summarize
+from rotavg_ros.core.so3 import rotation_angle
+
+
+def _angles_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    return np.degrees(rotation_angle(A @ np.swapaxes(B, -1, -2)))
+
+
+def _tiny_chain(name: str = "test/chain60") -> rc.RegimeCase:
+    return rc.chain_case(name, 60, closures=4, false_random=0.2, false_grouped=0.2)
+
+
+def _tiny_dense(name: str = "test/dense30") -> rc.RegimeCase:
+    return rc.dense_case(name, 30, 12, outliers=0.3)
+
+
+@pytest.mark.parametrize("make", [_tiny_chain, _tiny_dense])
+def test_generators_are_deterministic(make: object) -> None:
+    a, b = make(), make()  # type: ignore[operator]
+    assert np.array_equal(a.i, b.i) and np.array_equal(a.j, b.j)
+    assert np.array_equal(a.R, b.R) and np.array_equal(a.gt, b.gt)
+    assert a.inlier is not None and np.array_equal(a.inlier, b.inlier)
+    other = make("test/other")  # type: ignore[operator]
+    assert not np.array_equal(other.gt, a.gt)
+
+
+def test_noise_free_generation_is_exact() -> None:
+    rng = np.random.default_rng(0)
+    gt = rc.chain_trajectory(40, rng)
+    i = np.arange(39)
+    R = rc.perturb(rc.relative(gt, i, i + 1), 0.0, rng)
+    assert np.allclose(R, gt[i] @ np.swapaxes(gt[i + 1], -1, -2), atol=1e-12)
+    case = rc.dense_case("test/clean", 25, 10, outliers=0.0, noise_deg=0.0)
+    assert case.inlier is not None and case.inlier.all()
+    assert _angles_deg(case.R, rc.relative(case.gt, case.i, case.j)).max() < 1e-6
+    # Grouped false closures with zero noise agree with each other exactly: one W.
+    gi, gj, gR = rc.grouped_false_edges(gt, set(), 1, (5, 5), 10, 0.0, rng)
+    W = np.swapaxes(gt[gi], -1, -2) @ gR @ gt[gj]
+    assert gi.size == 5 and np.allclose(W, W[0], atol=1e-9)
+
+
+@pytest.mark.parametrize("make", [_tiny_chain, _tiny_dense])
+def test_false_edges_are_wrong_and_inliers_are_close(make: object) -> None:
+    case = make()  # type: ignore[operator]
+    assert case.inlier is not None and (~case.inlier).sum() >= 2
+    err = _angles_deg(case.R, rc.relative(case.gt, case.i, case.j))
+    assert err[~case.inlier].min() >= rc.MIN_FALSE_DEG - 1e-6
+    assert np.median(err[case.inlier]) < 5.0  # 1.5-2 deg noise
+
+
+def test_chain_has_no_triangles_and_odometry() -> None:
+    case = _tiny_chain()
+    assert rc.triangle_count(case.num_nodes, case.i, case.j) == 0
+    assert case.odometry.sum() == case.num_nodes - 1 and case.has_odometry
+    assert (case.i < case.j).all()
+    pairs = set(zip(case.i.tolist(), case.j.tolist(), strict=True))
+    assert len(pairs) == case.num_edges
+
+
+def test_ours_runs_and_is_scored() -> None:
+    case = _tiny_dense()
+    ours = run_method(case, OURS, timeout=60.0)
+    oracle = run_method(case, ORACLE, timeout=60.0)
+    for r in (ours, oracle):
+        assert r.status == "ok", r.note
+        assert r.errors is not None and len(r.errors) == case.num_nodes
+        assert 0.0 <= r.median_deg <= r.p95_deg and np.isfinite(r.mean_deg)
+    assert oracle.median_deg < 3.0  # 2 deg noise, true edges only
+    line = summarize([ours, oracle])
+    assert "ours/oracle median ratio over 1 generated cases" in line
+
+
+def test_summary_counts() -> None:
+    def row(method: str, mean: float, med: float) -> Result:
+        return Result("c", "sfm", 3, 3, method, "ok", mean, med, med, 0.1)
+
+    text = summarize([row(OURS, 3.0, 1.0), row("gtsam_chordal", 1.0, 0.96)])
+    assert "within 10% (or 0.05°) of the best peer's median on 1/1" in text
+    assert "best peer's mean on 1/1" in text
+
+
+def test_gnc_peer_with_known_inliers_runs() -> None:
+    from benchmarks import peers
+    from benchmarks.regimes import GNC_ODO, methods_for
+
+    case = _tiny_chain()
+    avail = peers.available_peers()
+    methods = dict(methods_for(case, avail))
+    assert GNC_ODO in methods and ORACLE in methods
+    if not avail.get("gtsam_gnc_tls"):
+        pytest.skip("gtsam not installed")
+    r = run_method(case, GNC_ODO, timeout=60.0)
+    assert r.status == "ok", r.note
+    assert f"{case.num_nodes - 1} known inliers" in r.note
+    assert r.errors is not None and len(r.errors) == case.num_nodes
