@@ -48,20 +48,18 @@ from rotavg_ros.core.solver import RotationAverager
 from rotavg_ros.core.view_graph import ViewGraph
 
 OURS = "ours"
+OURS_PAPER = "ours-paper"
 OURS_NOFILTER = "ours-nofilter"
 ORACLE = "oracle"
 GNC_ODO = "gtsam_gnc_tls+odo"
 PEER_METHODS = ("gtsam_chordal", "gtsam_shonan_huber", "pycolmap_half_norm",
                 "gtsam_gnc_tls", GNC_ODO)
-METHODS = (OURS, OURS_NOFILTER, ORACLE, *PEER_METHODS)
+METHODS = (OURS, OURS_PAPER, OURS_NOFILTER, ORACLE, *PEER_METHODS)
 
 
-def our_options(**flat: Any) -> SolverOptions:
-    """Our solver options from flat names (``use_filter=False``, ``seed=0``, ...); the one
-    place that builds them, whether ``SolverOptions`` is flat or has ``from_flat``."""
-    if hasattr(SolverOptions, "from_flat"):
-        return SolverOptions.from_flat(**flat)  # type: ignore[attr-defined, no-any-return]
-    return SolverOptions(**flat)
+def our_options(profile: str = "default", **flat: Any) -> SolverOptions:
+    """Our solver options: a profile, then flat names (``use_filter=False``, ``seed=0``)."""
+    return SolverOptions.for_profile(profile, **flat)
 
 
 @dataclass
@@ -85,12 +83,11 @@ class Result:
 # ------------------------------------------------------------------------ running
 
 
-_CASE: RegimeCase | None = None
 """The case being run; set in the parent before forking, inherited by the child."""
 
 
 def _solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
-                ) -> tuple[np.ndarray, float, str]:
+                profile: str = "default") -> tuple[np.ndarray, float, str]:
     sel = np.ones(case.num_edges, bool) if keep is None else keep
     g = ViewGraph()
     for k in range(case.num_nodes):
@@ -98,17 +95,21 @@ def _solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
     w = None if case.weight is None else case.weight[sel]
     g.add_edges(case.i[sel].tolist(), case.j[sel].tolist(), case.R[sel], w)
     t0 = time.perf_counter()
-    res = RotationAverager(our_options(device="cpu", **flat)).solve(g)
+    res = RotationAverager(our_options(profile, device="cpu", **flat)).solve(g)
     wall = time.perf_counter() - t0
     rot = np.stack([res.rotations[g.index_of(k)] for k in range(case.num_nodes)])
-    return rot, wall, f"depth {res.depth}, {res.num_filtered} filtered"
+    note = f"depth {res.depth}, {res.num_filtered} filtered"
+    if res.verification:
+        note += (f"; kept {res.verification}, noise {res.noise_sigma_deg:.2f} deg, "
+                 f"{res.num_rejected_verify} rejected, {res.num_readmitted} re-admitted")
+    return rot, wall, note
 
 
-def _solve(method: str) -> tuple[np.ndarray, float, str]:
-    case = _CASE
-    assert case is not None
+def _solve(case: RegimeCase, method: str) -> tuple[np.ndarray, float, str]:
     if method == OURS:
         return _solve_ours(case, None, {"seed": 0})
+    if method == OURS_PAPER:
+        return _solve_ours(case, None, {"seed": 0}, profile="paper")
     if method == OURS_NOFILTER:
         return _solve_ours(case, None, {"seed": 0, "use_filter": False})
     if method == ORACLE:
@@ -127,24 +128,28 @@ def _solve(method: str) -> tuple[np.ndarray, float, str]:
     return rot, wall, ""
 
 
-def _child(method: str, q: Any) -> None:
+def _child(case: RegimeCase, method: str, q: Any) -> None:
     os.environ["CUDA_VISIBLE_DEVICES"] = ""
     try:
-        rot, wall, note = _solve(method)
+        rot, wall, note = _solve(case, method)
         q.put(("ok", rot, wall, note))
     except Exception as exc:  # a row, the benchmark goes on
         q.put(("error", None, 0.0, f"{type(exc).__name__}: {exc}"[:200]))
 
 
-def run_method(case: RegimeCase, method: str, timeout: float) -> Result:
-    """Run one method on ``case`` in a forked child and score it."""
-    global _CASE
-    base = dict(case=case.name, family=case.family, nodes=case.num_nodes,
-                edges=case.num_edges, method=method)
-    _CASE = case
-    ctx = mp.get_context("fork")
+def run_method(case: RegimeCase, method: str, timeout: float,
+               start_method: str = "fork") -> Result:
+    """Run one method on ``case`` in a child process and score it.
+
+    ``fork`` (the benchmark's choice: no re-import per run) is safe only from a process that
+    has started no thread pools yet; a process that has (a test session that ran torch)
+    passes ``spawn``.
+    """
+    base: dict[str, Any] = dict(case=case.name, family=case.family, nodes=case.num_nodes,
+                                edges=case.num_edges, method=method)
+    ctx: Any = mp.get_context(start_method)
     q = ctx.Queue()
-    proc = ctx.Process(target=_child, args=(method, q))
+    proc = ctx.Process(target=_child, args=(case, method, q))
     proc.start()
     try:
         status, rot, wall, note = q.get(timeout=timeout)
@@ -165,7 +170,7 @@ def run_method(case: RegimeCase, method: str, timeout: float) -> Result:
 def methods_for(case: RegimeCase, available: dict[str, bool]) -> list[tuple[str, bool]]:
     """``(method, runnable)`` for this case (oracle only with a known inlier set, GNC
     with known inliers only with odometry)."""
-    out: list[tuple[str, bool]] = [(OURS, True), (OURS_NOFILTER, True)]
+    out: list[tuple[str, bool]] = [(OURS, True), (OURS_PAPER, True), (OURS_NOFILTER, True)]
     if case.inlier is not None:
         out.append((ORACLE, True))
     for m in PEER_METHODS:
@@ -199,8 +204,8 @@ def best_peer(rows: list[Result], key: str) -> Result | None:
     return min(ok, key=lambda r: getattr(r, key)) if ok else None
 
 
-def summarize(results: list[Result]) -> str:
-    """The issue's target counts and oracle ratios, as markdown."""
+def summarize(results: list[Result], method: str = OURS) -> str:
+    """The issue's target counts and oracle ratios of ``method``, as markdown."""
     by_case: dict[str, list[Result]] = {}
     for r in results:
         by_case.setdefault(r.case, []).append(r)
@@ -209,7 +214,7 @@ def summarize(results: list[Result]) -> str:
     ratios: list[str] = []
     ratio_vals: list[float] = []
     for name, rows in by_case.items():
-        ours = next((r for r in rows if r.method == OURS and r.status == "ok"), None)
+        ours = next((r for r in rows if r.method == method and r.status == "ok"), None)
         bm, bmean = best_peer(rows, "median_deg"), best_peer(rows, "mean_deg")
         oracle = next((r for r in rows if r.method == ORACLE and r.status == "ok"), None)
         if ours is not None and oracle is not None:
@@ -227,7 +232,7 @@ def summarize(results: list[Result]) -> str:
             far.append(f"| {name} | {ours.mean_deg:.3f} / {ours.median_deg:.3f} | "
                        f"{bmean.method}: {bmean.mean_deg:.3f} | "
                        f"{bm.method}: {bm.median_deg:.3f} |")
-    out = [f"**Summary:** ours within 10% (or 0.05°) of the best peer's median on "
+    out = [f"**Summary ({method}):** within 10% (or 0.05°) of the best peer's median on "
            f"{within}/{compared} cases; our mean > 1.5× the best peer's mean on "
            f"{worse_mean}/{compared} cases; ours/oracle median ratio over "
            f"{len(ratio_vals)} generated cases: median "
@@ -339,6 +344,8 @@ def main(argv: list[str] | None = None) -> int:
     total = time.perf_counter() - t_start
     table = "\n".join([*HEADER, *(format_row(r) for r in results)])
     summary = summarize(results)
+    if any(r.method == OURS_PAPER for r in results):
+        summary += "\n\n" + summarize(results, OURS_PAPER).split("\n")[0]
     print(f"\n{summary}\n\ntotal wall time {total:.0f} s for {len(names)} cases", flush=True)
     if args.markdown:
         Path(args.markdown).write_text(

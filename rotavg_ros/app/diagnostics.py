@@ -57,6 +57,12 @@ def diagnostic_values(
             "components": num_components,
             "detached_components": detached or "none",
             "filtered_outliers": result.num_filtered,
+            "rejected_by_filter": result.num_filtered,
+            "rejected_by_verification": result.num_rejected_verify,
+            "readmitted_by_verification": result.num_readmitted,
+            "verification": result.verification or "off",
+            "noise_sigma_deg": result.noise_sigma_deg,
+            "untested_loop_closures": result.num_untested,
             "depth": result.depth,
             "residual_median_deg": median,
             "residual_mean_deg": float(np.mean(inlier)) if inlier.size else math.nan,
@@ -65,6 +71,9 @@ def diagnostic_values(
         if num_components > 1:
             level = Level.WARN
             problems.append(f"{num_components - 1} component(s) not connected to the anchor")
+        if result.num_untested:
+            level = Level.WARN
+            problems.append(f"{result.num_untested} loop closure(s) could not be tested")
         if math.isfinite(median) and median > settings.residual_warn_deg:
             level = Level.WARN
             problems.append(

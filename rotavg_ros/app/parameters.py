@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.options import PROFILES, SolverOptions
 from rotavg_ros.core.view_graph import RepeatPolicy
 from rotavg_ros.errors import InputError
 from rotavg_ros.msg_adapters.inputs import DEFAULT_REFERENCE_VARIANCE, AdapterConfig
@@ -109,6 +109,12 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
     ParameterSpec(
         "max_weight", 1e3,
         "Upper clamp of covariance-derived edge weights.", range=FloatRange(1e-9, 1e9)),
+    ParameterSpec(
+        "profile", "default",
+        "Solver profile: default (filtered DMF, then a verification that re-solves every edge "
+        "robustly with the noise estimated from the data and keeps the better-explaining "
+        "solution) or paper (Algorithm 1 and the DMF only, as published).",
+        choices=tuple(PROFILES)),
     ParameterSpec(
         "mode", _SOLVER.mode,
         "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "
@@ -223,7 +229,8 @@ class Settings:
 def solver_options_from_parameters(p: Mapping[str, Any]) -> SolverOptions:
     """The node's :class:`SolverOptions` (fields without a parameter keep their default)."""
     threads = int(p["threads"])
-    return SolverOptions.from_flat(
+    return SolverOptions.for_profile(
+        str(p["profile"]),
         mode=str(p["mode"]),
         depths=tuple(int(d) for d in p["depths"]),
         iterations=int(p["iterations"]),

@@ -98,6 +98,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
                               if getattr(args, name) is not None}
     params.update({
         "publish_markers": not args.no_markers,
+        "profile": args.profile,
         "mode": args.mode,
         "warm_start": not args.no_warm_start,
         "depths": list(options.dense.depths),

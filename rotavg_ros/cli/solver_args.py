@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from rotavg_ros.cli.output import say
-from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.options import PROFILES, SolverOptions
 from rotavg_ros.errors import InputError
 
 
@@ -13,6 +13,11 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     """Solver knobs shared by every command that solves."""
     d = SolverOptions()
     g = parser.add_argument_group("solver")
+    g.add_argument("--profile", default="default", choices=tuple(PROFILES),
+                   help="default: the filtered DMF, then a verification that re-solves every "
+                   "edge robustly with the noise estimated from the data and keeps the "
+                   "better-explaining solution; paper: Algorithm 1 and the DMF only, as "
+                   "published (use it for the ablations) (default %(default)s)")
     g.add_argument("--mode", default=d.mode, choices=("auto", "dense", "sparse"),
                    help="dense: the paper's DMF; sparse: chordal start + Huber + L-BFGS for "
                    "chain-like SLAM graphs; auto: by mean degree (default %(default)s)")
@@ -51,7 +56,8 @@ def options_from_args(args: argparse.Namespace) -> SolverOptions:
     except ValueError as exc:
         raise InputError(f"--depths: expected comma-separated integers: {args.depths!r}") from exc
     progress = None if getattr(args, "quiet", False) else say
-    return SolverOptions.from_flat(
+    return SolverOptions.for_profile(
+        getattr(args, "profile", "default"),
         mode=args.mode, depths=depths, iterations=args.iterations, tolerance=args.tolerance,
         dtype=args.dtype, lr=args.lr, sigma=args.sigma,
         seed=args.seed, device=args.device,

@@ -133,6 +133,25 @@ class WarmStartOptions:
 
 
 @dataclass
+class VerifyOptions:
+    """Verification after the solve (beyond the paper; :mod:`rotavg_ros.core.robust`): a
+    robust re-solve on every input edge with a noise scale estimated from the data, and the
+    choice between it and the filtered-DMF solution by their likelihood on every edge."""
+
+    enabled: bool = field(default=True, metadata=_flat("verify"))
+    """Run it (the ``paper`` profile turns it off)."""
+    initial_threshold_deg: float = field(default=30.0,
+                                         metadata=_flat("verify_initial_threshold_deg"))
+    """Residual angle of the first GNC-TLS pass, before the noise is known: a random
+    rotation is this close to a given one with probability 0.7%, and inlier noise up to
+    about 10 deg per edge stays inside it. The noise fit then sets the threshold."""
+    max_threshold_deg: float = field(default=60.0, metadata=_flat("verify_max_threshold_deg"))
+    """Cap of the fitted inlier threshold (in standardized units, degrees)."""
+    rounds: int = field(default=2, metadata=_flat("verify_rounds"))
+    """Re-admit / drop rounds with the fitted threshold."""
+
+
+@dataclass
 class RuntimeOptions:
     """Where and how the solve runs; none of these changes the method."""
 
@@ -157,8 +176,16 @@ _GROUPS: dict[str, type] = {
     "dense": DenseFitOptions,
     "sparse": SparseFitOptions,
     "warm": WarmStartOptions,
+    "verify": VerifyOptions,
     "runtime": RuntimeOptions,
 }
+
+PROFILES: dict[str, dict[str, Any]] = {
+    "default": {},
+    "paper": {"verify": False},
+}
+"""Named option sets by flat name. ``paper`` is Algorithm 1 and the DMF of the paper to the
+letter (with our documented tie rule); ``default`` adds the verification stage."""
 
 
 @dataclass
@@ -174,7 +201,17 @@ class SolverOptions:
     dense: DenseFitOptions = field(default_factory=DenseFitOptions)
     sparse: SparseFitOptions = field(default_factory=SparseFitOptions)
     warm: WarmStartOptions = field(default_factory=WarmStartOptions)
+    verify: VerifyOptions = field(default_factory=VerifyOptions)
     runtime: RuntimeOptions = field(default_factory=RuntimeOptions)
+
+    @classmethod
+    def for_profile(cls, profile: str = "default", **values: Any) -> SolverOptions:
+        """The options of a named profile (:data:`PROFILES`), then ``values`` by flat name.
+        Raises :class:`~rotavg_ros.errors.InputError` for an unknown profile."""
+        if profile not in PROFILES:
+            raise InputError(f"invalid solver option: profile must be one of "
+                             f"{', '.join(PROFILES)}, got {profile!r}")
+        return cls.from_flat(**{**PROFILES[profile], **values})
 
     # ------------------------------------------------------------ flat names
     @classmethod
@@ -240,14 +277,15 @@ def _problems(o: Mapping[str, Any]) -> Iterator[str]:
         if not depths or any(not _is_int(d) or d < 2 or d % 2 for d in depths):
             yield f"{name} must be a non-empty list of even integers >= 2, got {depths!r}"
     for name in ("iterations", "warm_iterations", "reweight_every", "sparse_rounds",
-                 "sparse_inner_iterations"):
+                 "sparse_inner_iterations", "verify_rounds"):
         if not _is_int(o[name]) or o[name] < 1:
             yield f"{name} must be an integer >= 1, got {o[name]!r}"
     for name in ("warmup", "max_full_width_nodes"):
         if not _is_int(o[name]) or o[name] < 0:
             yield f"{name} must be an integer >= 0, got {o[name]!r}"
     for name in ("lr", "warm_lr", "init_scale", "sigma", "huber_factor",
-                 "sparse_outlier_factor"):
+                 "sparse_outlier_factor", "verify_initial_threshold_deg",
+                 "verify_max_threshold_deg"):
         if not _positive(o[name]):
             yield f"{name} must be a finite number > 0, got {o[name]!r}"
     if o["sigma_untested"] is not None and not _positive(o["sigma_untested"]):

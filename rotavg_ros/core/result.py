@@ -6,6 +6,7 @@ Conventions: rotations are world-to-node (``x_node = R_i x_world``); edges carry
 
 from __future__ import annotations
 
+import math
 from collections.abc import Hashable
 from dataclasses import dataclass, field
 
@@ -28,10 +29,26 @@ class SolveResult:
     residuals_deg: FloatArray
     """(E,) angular residual of every consolidated input edge against the solution."""
     edge_inlier: BoolArray
-    """(E,) False for edges removed by the filter."""
+    """(E,) False for edges the final solution treats as outliers (removed by the filter
+    and not re-admitted by the verification, or rejected by the verification)."""
     num_filtered: int
+    """Edges the spanning-tree filter removed."""
     cost_by_depth: dict[int, float]
     duration_s: float
     iterations_by_depth: dict[int, int] = field(default_factory=dict)
     """Iterations each depth's fit ran (largest component; dense mode: at most
     ``iterations``, fewer when stopped early; 0 for the L-BFGS fit of sparse mode)."""
+    num_rejected_verify: int = 0
+    """Edges the filter kept and the verification rejected."""
+    num_readmitted: int = 0
+    """Edges the filter removed and the verification re-admitted."""
+    noise_sigma_deg: float = math.nan
+    """Per-axis noise of a unit-weight edge estimated from the data (largest component;
+    NaN when the verification did not run)."""
+    num_untested: int = 0
+    """Loop closures (edges off a spanning tree) whose consistency no check could test: the
+    ``paper`` profile tests only edges on triangles (or on a triangle-verified tree path);
+    the verification tests every edge on a cycle."""
+    verification: str = ""
+    """Which solution the verification kept (largest component): ``dmf`` (the filtered
+    DMF), ``robust`` (its re-solve on every edge), or empty (``paper`` profile)."""

@@ -8,6 +8,7 @@ the output gives every connected component its own gauge, with its anchor at ide
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Hashable, Mapping
@@ -25,6 +26,7 @@ from rotavg_ros.core.dmf import DMFFit, FitSpec, fit_symmetric, fit_symmetric_lb
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.robust.verify import verify
 from rotavg_ros.core.so3 import chordal_distance, geodesic_distance, project_to_so3
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
@@ -37,9 +39,18 @@ class ComponentSolution:
 
     rotations: FloatArray
     kept: BoolArray
+    """Edges the final solution keeps as inliers (after the filter and the verification)."""
     depth: int
     cost_by_depth: dict[int, float]
     iterations_by_depth: dict[int, int]
+    filter_kept: BoolArray
+    """Edges the spanning-tree filter kept (all True without the filter)."""
+    noise_sigma_deg: float = math.nan
+    """Per-axis noise of a unit-weight edge estimated by the verification (NaN: not run)."""
+    verification: str = ""
+    """Which solution the verification kept: ``dmf``, ``robust``, or empty (not run)."""
+    untested: int = 0
+    """Loop closures (edges off a spanning tree) that no check could test."""
 
 
 def rotations_from_factor(H: FloatArray) -> FloatArray:
@@ -119,7 +130,12 @@ class RotationAverager:
             depth=out.depth,
             residuals_deg=residuals,
             edge_inlier=out.kept,
-            num_filtered=int((~out.kept).sum()),
+            num_filtered=int((~out.filter_kept).sum()),
+            num_rejected_verify=int((out.filter_kept & ~out.kept).sum()),
+            num_readmitted=int((~out.filter_kept & out.kept).sum()),
+            noise_sigma_deg=out.noise_sigma_deg,
+            verification=out.verification,
+            num_untested=out.untested,
             cost_by_depth=out.cost_by_depth,
             duration_s=out.duration_s,
             iterations_by_depth=out.iterations_by_depth,
@@ -136,11 +152,13 @@ class RotationAverager:
         opt = self.options
         w = w / np.mean(w)
         tree_rot: FloatArray | None = None
+        untested = max(i.size - (n - 1), 0)  # without a filter nothing is tested
         if opt.filter.use_filter:
             filt = filter_edges(i, j, R, w, n, opt.filter.sigma, opt.filter.use_support_count,
                                 opt.filter.sigma_untested)
             kept = filt.kept
             tree_rot = filt.tree_rotations
+            untested = int(np.sum(~(filt.tested | filt.path_tested | filt.in_tree)))
             self._say(f"filter: {filt.num_triangles} triangles, removed "
                       f"{filt.num_removed}/{i.size} edges")
         else:
@@ -173,7 +191,23 @@ class RotationAverager:
         rot = rots[best]
         rot = project_to_so3(np.einsum("nab,cb->nac", rot, rot[0]))  # gauge: R_i R_0^T
         rot[0] = np.eye(3)  # exactly, not up to the SVD's rounding
-        return ComponentSolution(rot, kept, best, costs, iterations)
+        if not opt.verify.enabled or i.size < 3:
+            return ComponentSolution(rot, kept, best, costs, iterations, kept,
+                                     untested=untested)
+        starts = {} if tree_rot is None else {"tree": tree_rot}  # the filter's tree
+        out = verify(n, i, j, R, w, rot, kept, starts,
+                     initial_threshold=math.radians(opt.verify.initial_threshold_deg),
+                     max_threshold=math.radians(opt.verify.max_threshold_deg),
+                     rounds=opt.verify.rounds)
+        final = out.rotations
+        if out.chosen == "robust":  # same gauge as the DMF solution: node 0 = I
+            final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))
+            final[0] = np.eye(3)
+        self._say(f"verification: kept the {out.chosen} solution, noise "
+                  f"{out.noise.sigma_deg:.2f} deg per axis, {int((~out.inlier).sum())} "
+                  f"edges outside {math.degrees(out.noise.threshold):.1f} sigma-units")
+        return ComponentSolution(final, out.inlier, best, costs, iterations, kept,
+                                 out.noise.sigma_deg, out.chosen, out.untested)
 
     def is_sparse(self, num_nodes: int, num_edges: int) -> bool:
         """Whether the sparse-graph variant is used for this component."""
@@ -314,12 +348,20 @@ class ArraySolution:
     depth: int
     """Depth chosen for the largest component (0 if it has no edges)."""
     kept: BoolArray
-    """(E,) whether each edge passed the filter."""
+    """(E,) whether each edge is an inlier of the final solution."""
     cost_by_depth: dict[int, float]
     """Eq. 3 cost of each depth candidate (largest component)."""
     duration_s: float
     iterations_by_depth: dict[int, int]
     """Iterations each depth's fit ran (largest component)."""
+    filter_kept: BoolArray
+    """(E,) whether each edge passed the spanning-tree filter."""
+    noise_sigma_deg: float = math.nan
+    """Noise per axis estimated by the verification (largest component; NaN: not run)."""
+    verification: str = ""
+    """Solution the verification kept for the largest component (``dmf``/``robust``)."""
+    untested: int = 0
+    """Loop closures no check could test, over all components."""
 
 
 def average_rotations(
@@ -344,8 +386,10 @@ def average_rotations(
     labels = _component_labels(num_nodes, i, j, anchor)
     rotations = np.tile(np.eye(3), (num_nodes, 1, 1))
     kept = np.ones(i.size, bool)
+    filter_kept = np.ones(i.size, bool)
     comp_anchor: list[int] = []
     depth, costs, iterations, best_size = 0, {}, {}, 0
+    noise, verification, untested = math.nan, "", 0
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
         if label == 0 and anchor in nodes:
@@ -365,11 +409,15 @@ def average_rotations(
             None if initial is None else initial[nodes], initial_depth)
         rotations[nodes] = sol.rotations
         kept[sel] = sol.kept
+        filter_kept[sel] = sol.filter_kept
+        untested += sol.untested
         if nodes.size > best_size:
             depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
             iterations = sol.iterations_by_depth
+            noise, verification = sol.noise_sigma_deg, sol.verification
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
-                         time.perf_counter() - t0, iterations)
+                         time.perf_counter() - t0, iterations, filter_kept, noise,
+                         verification, untested)
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:

@@ -1,0 +1,101 @@
+"""The noise scale and the inlier threshold, estimated from residual angles.
+
+Residual angles ``r`` (radians) of edges against a solution are modelled as a mixture:
+
+* inliers: isotropic Gaussian noise of standard deviation ``s`` per axis of the rotation
+  vector, so ``r`` follows a Maxwell (chi, 3 degrees of freedom) distribution of scale ``s``;
+* outliers: rotations uniform on SO(3), whose angle has density ``(1 - cos r) / pi`` on
+  ``[0, pi]``.
+
+An EM fit gives ``s`` and the inlier fraction; the inlier threshold is the angle where an
+edge becomes more likely an outlier than an inlier. With no outliers the threshold moves far
+into the inlier tail, so clean graphs lose no edges; with high noise it grows with ``s``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from rotavg_ros.core.types import FloatArray
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Fitted mixture: per-axis noise ``sigma`` (rad), inlier fraction, threshold (rad)."""
+
+    sigma: float
+    inlier_fraction: float
+    threshold: float
+
+    @property
+    def sigma_deg(self) -> float:
+        return math.degrees(self.sigma)
+
+
+def _log_maxwell(r: FloatArray, s: float) -> FloatArray:
+    return 0.5 * math.log(2.0 / math.pi) + 2.0 * np.log(np.maximum(r, 1e-300)) \
+        - 3.0 * math.log(s) - r * r / (2.0 * s * s)
+
+
+def _log_uniform(r: FloatArray) -> FloatArray:
+    return np.log(np.maximum(1.0 - np.cos(r), 1e-300) / math.pi)
+
+
+def fit_noise(
+    r: FloatArray, min_sigma: float = math.radians(0.05), max_threshold: float = math.radians(60),
+    iterations: int = 50, scale: FloatArray | None = None,
+) -> NoiseModel:
+    """EM fit of the inlier/outlier mixture to residual angles ``r`` (radians).
+
+    With ``scale``, ``r`` are standardized residuals (raw angle / ``scale``, per edge): the
+    inlier model stays Maxwell, and an outlier's raw angle is still uniform-rotation
+    distributed, so its density in standardized units is ``scale g(r scale)``.
+    ``min_sigma`` keeps the scale away from zero (exact data); the threshold is capped at
+    ``max_threshold``. Returns a wide threshold when there are too few residuals to fit.
+    """
+    r = np.asarray(r, dtype=np.float64)
+    ok = np.isfinite(r)
+    sc = np.ones(r.shape) if scale is None else np.asarray(scale, dtype=np.float64)
+    r, sc = r[ok], sc[ok]
+    if r.size < 5:
+        return NoiseModel(math.radians(5.0), 1.0, max_threshold)
+    r = np.maximum(r, 1e-9)
+    if scale is None:
+        r = np.minimum(r, math.pi)
+    s = max(float(np.median(r)) / 1.538, min_sigma)  # median of Maxwell(1) = 1.538
+    p = 0.8
+    log_out = np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi))
+    for _ in range(iterations):
+        a = math.log(p) + _log_maxwell(r, s)
+        b = math.log(1.0 - p) + log_out
+        gamma = 1.0 / (1.0 + np.exp(np.clip(b - a, -700, 700)))
+        total = float(gamma.sum())
+        if total <= 0:
+            break
+        s_new = max(math.sqrt(float((gamma * r * r).sum()) / (3.0 * total)), min_sigma)
+        p_new = min(max(total / r.size, 1e-3), 1.0 - 1e-6)
+        done = abs(s_new - s) < 1e-6 * s and abs(p_new - p) < 1e-6
+        s, p = s_new, p_new
+        if done:
+            break
+    return NoiseModel(s, p, _crossing(s, p, max_threshold))
+
+
+def log_likelihood(r: FloatArray, model: NoiseModel) -> float:
+    """Log-likelihood of residual angles ``r`` (radians) under the fitted mixture."""
+    r = np.clip(np.asarray(r, dtype=np.float64), 1e-9, math.pi)
+    p = model.inlier_fraction
+    a = math.log(p) + _log_maxwell(r, model.sigma)
+    b = math.log(1.0 - p) + _log_uniform(r) if p < 1.0 else np.full(r.shape, -np.inf)
+    return float(np.sum(np.logaddexp(a, b)))
+
+
+def _crossing(s: float, p: float, cap: float) -> float:
+    """Smallest angle above the inlier mode where outliers become more likely; <= cap."""
+    grid = np.linspace(s * math.sqrt(2.0), max(cap, s * math.sqrt(2.0)), 2000)
+    more_out = math.log(1.0 - p) + _log_uniform(grid) > math.log(p) + _log_maxwell(grid, s)
+    hit = np.flatnonzero(more_out)
+    return float(grid[hit[0]]) if hit.size else cap
