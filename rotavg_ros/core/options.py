@@ -136,7 +136,8 @@ class WarmStartOptions:
 class VerifyOptions:
     """Verification after the solve (beyond the paper; :mod:`rotavg_ros.core.robust`): a
     robust re-solve on every input edge with a noise scale estimated from the data, and the
-    choice between it and the filtered-DMF solution by their likelihood on every edge."""
+    choice between it and the filtered-DMF solution by a truncated L1 cost over every
+    edge."""
 
     enabled: bool = field(default=True, metadata=_flat("verify"))
     """Run it (the ``paper`` profile turns it off)."""

@@ -51,4 +51,5 @@ class SolveResult:
     the verification tests every edge on a cycle."""
     verification: str = ""
     """Which solution the verification kept (largest component): ``dmf`` (the filtered
-    DMF), ``robust`` (its re-solve on every edge), or empty (``paper`` profile)."""
+    DMF), ``robust`` (its re-solve on every edge), ``failed`` (the verification raised;
+    the DMF solution stands) or empty (``paper`` profile)."""

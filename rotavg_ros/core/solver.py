@@ -195,17 +195,23 @@ class RotationAverager:
             return ComponentSolution(rot, kept, best, costs, iterations, kept,
                                      untested=untested)
         starts = {} if tree_rot is None else {"tree": tree_rot}  # the filter's tree
-        out = verify(n, i, j, R, w, rot, kept, starts,
-                     initial_threshold=math.radians(opt.verify.initial_threshold_deg),
-                     max_threshold=math.radians(opt.verify.max_threshold_deg),
-                     rounds=opt.verify.rounds)
+        try:
+            out = verify(n, i, j, R, w, rot, kept, starts,
+                         initial_threshold=math.radians(opt.verify.initial_threshold_deg),
+                         max_threshold=math.radians(opt.verify.max_threshold_deg),
+                         rounds=opt.verify.rounds)
+        except (np.linalg.LinAlgError, FloatingPointError, RuntimeError) as exc:
+            self._say(f"verification failed ({type(exc).__name__}: {exc}); keeping the DMF "
+                      "solution")
+            return ComponentSolution(rot, kept, best, costs, iterations, kept,
+                                     verification="failed", untested=untested)
         final = out.rotations
         if out.chosen == "robust":  # same gauge as the DMF solution: node 0 = I
             final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))
             final[0] = np.eye(3)
         self._say(f"verification: kept the {out.chosen} solution, noise "
                   f"{out.noise.sigma_deg:.2f} deg per axis, {int((~out.inlier).sum())} "
-                  f"edges outside {math.degrees(out.noise.threshold):.1f} sigma-units")
+                  f"edges outside")
         return ComponentSolution(final, out.inlier, best, costs, iterations, kept,
                                  out.noise.sigma_deg, out.chosen, out.untested)
 

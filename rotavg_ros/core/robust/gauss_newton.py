@@ -186,7 +186,7 @@ def prediction_variance(
 
 
 def _exact_prediction_variance(lu: Any, free: IntArray, n: int, Pt: FloatArray,
-                               i: IntArray, j: IntArray, batch: int = 512) -> FloatArray:
+                               i: IntArray, j: IntArray, batch: int = 32) -> FloatArray:
     """``tr(A_e H^-1 A_e^T) / 3`` by solving ``H X = A_e^T`` for each edge's 3 columns."""
     out = np.empty(i.size)
     index = np.full(3 * n, -1)

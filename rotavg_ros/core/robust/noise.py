@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rotavg_ros.core.types import FloatArray
+from rotavg_ros.core.types import BoolArray, FloatArray
 
 
 @dataclass(frozen=True)
@@ -84,6 +84,21 @@ def fit_noise(
     return NoiseModel(s, p, _crossing(s, p, max_threshold))
 
 
+def is_inlier(r: FloatArray, model: NoiseModel, scale: FloatArray | None = None,
+              max_threshold: float = math.pi) -> BoolArray:
+    """Per residual: more likely an inlier than an outlier under ``model`` (and at most
+    ``max_threshold``). With ``scale``, ``r`` are standardized residuals and each outlier
+    density is taken at its own scale, as in :func:`fit_noise`."""
+    r = np.maximum(np.asarray(r, dtype=np.float64), 1e-9)
+    sc = np.ones(r.shape) if scale is None else np.asarray(scale, dtype=np.float64)
+    p = model.inlier_fraction
+    if p >= 1.0:
+        return r <= max_threshold
+    log_in = math.log(p) + _log_maxwell(r, model.sigma)
+    log_out = math.log(1.0 - p) + np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi))
+    return (log_in >= log_out) & (r <= max_threshold)
+
+
 def log_likelihood(r: FloatArray, model: NoiseModel) -> float:
     """Log-likelihood of residual angles ``r`` (radians) under the fitted mixture."""
     r = np.clip(np.asarray(r, dtype=np.float64), 1e-9, math.pi)
@@ -98,4 +113,4 @@ def _crossing(s: float, p: float, cap: float) -> float:
     grid = np.linspace(s * math.sqrt(2.0), max(cap, s * math.sqrt(2.0)), 2000)
     more_out = math.log(1.0 - p) + _log_uniform(grid) > math.log(p) + _log_maxwell(grid, s)
     hit = np.flatnonzero(more_out)
-    return float(grid[hit[0]]) if hit.size else cap
+    return min(float(grid[hit[0]]), cap) if hit.size else cap

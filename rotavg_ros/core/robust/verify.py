@@ -6,19 +6,21 @@ high-noise graphs it removes the loop closures, when the tree takes an outlier i
 the subtree's correcting edges, and on chains (no triangles) it tests nothing. This stage
 takes the solution, not the tree, as the reference, and lets the data set the threshold:
 
-1. **Start.** The best of the candidate start points (the DMF solution, the spanning tree's
-   rotations, the odometry chain's rotations, the chordal solution) by the truncated
-   least-squares (TLS) cost at ``initial_threshold``.
-2. **GNC-TLS** (:mod:`.gnc`) over every edge from that start, odometry edges as known
-   inliers where the caller marks them.
-3. **Noise.** An inlier/outlier mixture fitted to the residual angles of the edges that are
-   not on the odometry chain / spanning tree (:mod:`.noise`; tree edges have no redundancy,
-   their residuals say nothing about the noise) gives the noise scale and the threshold; a
-   second GNC-TLS runs at that threshold.
-4. **Re-solve** by geodesic least squares on the edges within the threshold.
-5. **Choice.** The TLS cost over all input edges at the final threshold decides between the
-   re-solve and the DMF solution, so a filter that condemned a subtree loses to the solution
-   that doesn't, and a DMF solution that explains the data keeps its accuracy.
+1. **Robust re-solves.** GNC-TLS (:mod:`.gnc`) over every edge, at ``initial_threshold``,
+   from each start point: the DMF solution, the odometry chain's rotations (a spanning tree
+   that takes consecutive node indices first) and any the caller adds (the solver adds the
+   filter's spanning tree), then least squares on its inliers. The re-solve whose residuals
+   are most likely under an inlier/outlier mixture fitted to them is kept.
+2. **Noise.** Every residual is standardized by its own predicted spread (leverage for edges
+   in the fit, prediction variance for the others; :func:`standardized_residuals`); the
+   mixture fitted to the standardized residuals (:mod:`.noise`) gives the noise scale and,
+   per edge, whether it is more likely an inlier or an outlier.
+3. **Re-admit and drop.** Up to ``rounds`` times: re-classify every edge so, and re-solve by
+   geodesic least squares on the inliers.
+4. **Choice.** The truncated L1 cost over all input edges decides between the re-solve and
+   the DMF solution, which is kept unless the re-solve is clearly (``margin``) better: a
+   filter that condemned a subtree, or false closures the DMF bent to fit, lose; a DMF
+   solution that explains the data keeps its accuracy.
 
 Conventions: world-to-node ``R_i``, ``R_ij ~= R_i R_j^T``, node 0 fixed (anchor).
 """
@@ -30,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import minimum_spanning_tree
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from rotavg_ros.core.filter.edge_filter import tree_rotations
 from rotavg_ros.core.robust.gauss_newton import (
@@ -39,7 +41,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     residual_angles,
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
-from rotavg_ros.core.robust.noise import NoiseModel, fit_noise, log_likelihood
+from rotavg_ros.core.robust.noise import NoiseModel, fit_noise, is_inlier, log_likelihood
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 EXACT_LEVERAGE_EDGES = 100
@@ -89,21 +91,23 @@ def standardized_residuals(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, fit: BoolArray,
     tree: BoolArray | None = None, seed: int = 0,
 ) -> tuple[FloatArray, FloatArray]:
-    """``(t, scale)``: residual angles in units of their own predicted spread.
+    """``(t, spread)``: residual angles in units of their own expected spread, and the
+    spread of each edge's prediction from the other edges.
 
     ``rot`` is (close to) the weighted least-squares solution on the edges in ``fit``. An edge
     in the fit has a residual shrunk by its leverage ``h = w q`` (``q`` from
     :func:`~.gauss_newton.prediction_variance`), one outside it is predicted with variance
-    ``1 / w + q``; ``scale`` is that standard deviation per edge (unit-weight noise = 1) and
-    ``t = r / scale``. Edges of a chain or a tree have leverage near 1: their residual says
+    ``1 / w + q``; ``t`` is the residual over that standard deviation (unit-weight noise =
+    1). Edges of a chain or a tree have leverage near 1: their residual says
     nothing about the noise, and their ``t`` is set to NaN; ``tree`` marks such edges known
     in advance (a spanning tree's), which are not worth an exact leverage.
     """
     r = residual_angles(rot, i, j, R)
     q = prediction_variance(rot, i, j, w * fit, seed=seed)
-    # Where the leverage is high (> 0.8) the probe estimate is too rough for 1 - h: solve
-    # exactly for up to EXACT_LEVERAGE_EDGES such edges (the highest first).
-    high = np.flatnonzero(fit & (w * q > 0.8) & (True if tree is None else ~tree))
+    # The probe estimate of h has a spread of about 0.14 h: where h > 0.5 it is too rough
+    # for 1 - h. Solve exactly for up to EXACT_LEVERAGE_EDGES such edges off the tree (loop
+    # closures, highest first); the others (tree edges) say nothing about the noise.
+    high = np.flatnonzero(fit & (w * q > 0.5) & (True if tree is None else ~tree))
     exact = np.zeros(i.size, bool)
     exact[high[np.argsort(-(w * q)[high])][:EXACT_LEVERAGE_EDGES]] = True
     if exact.any():
@@ -111,9 +115,19 @@ def standardized_residuals(
     h = w * q
     var = np.where(fit, (1.0 - h) / w, 1.0 / w + q)
     scale = np.sqrt(np.maximum(var, 1e-12))
-    undetermined = fit & np.where(exact, h > 1.0 - 1e-6, h > 0.9)
+    # Spread of the edge's prediction from all the other edges: an outlier's error u (a
+    # uniform-rotation angle) shows as t = u / spread, in the fit (r = u (1 - h)) or not.
+    spread = np.where(fit, 1.0 / np.sqrt(np.maximum(w * (1.0 - h), 1e-12)),
+                      np.sqrt(1.0 / w + q))
+    undetermined = fit & np.where(exact, h > 1.0 - 1e-3, h > 0.5)
+    # An edge outside the fit that joins two pieces of the fit graph (or a node no fitted
+    # edge reaches) has no prediction at all: the probes never see that null space.
+    pieces = connected_components(coo_matrix(
+        (np.ones(int(fit.sum())), (i[fit], j[fit])), shape=(rot.shape[0],) * 2),
+        directed=False)[1]
+    undetermined |= ~fit & (pieces[i] != pieces[j])
     t = np.where(undetermined, np.nan, r / scale)
-    return t, scale
+    return t, spread
 
 
 def _fit_and_classify(
@@ -121,15 +135,15 @@ def _fit_and_classify(
     max_threshold: float, tree: BoolArray | None = None,
 ) -> tuple[NoiseModel, BoolArray, FloatArray]:
     """Noise model of the standardized residuals, the edges within its threshold, and t."""
-    t, scale = standardized_residuals(rot, i, j, R, w, fit, tree)
+    t, spread = standardized_residuals(rot, i, j, R, w, fit, tree)
     informative = np.isfinite(t)
-    if informative.sum() >= 5:
-        noise = fit_noise(t[informative], max_threshold=max_threshold,
-                          scale=scale[informative])
-    else:
-        noise = fit_noise(residual_angles(rot, i, j, R), max_threshold=max_threshold)
-    # Edges whose residual says nothing (leverage near 1, t NaN) keep their status.
-    inlier = np.where(np.isfinite(t), t <= noise.threshold, fit)
+    if informative.sum() < 5:  # too little to fit a noise model: nothing changes
+        return NoiseModel(math.nan, 1.0, max_threshold), fit.copy(), t
+    noise = fit_noise(t[informative], max_threshold=max_threshold, scale=spread[informative])
+    # Each edge by its own posterior (the outlier density depends on its scale); edges
+    # whose residual says nothing (t NaN) keep their status.
+    inlier = fit.copy()
+    inlier[informative] = is_inlier(t[informative], noise, spread[informative], max_threshold)
     return noise, inlier, t
 
 
@@ -150,7 +164,8 @@ def verify(
     rounds: int = 2,
     margin: float = 0.02,
 ) -> VerifyOutcome:
-    """Robust re-solve of every edge and the likelihood choice (see the module docstring).
+    """Robust re-solve of every edge and the choice against the DMF solution (see the
+    module docstring).
 
     ``starts`` are extra start points (name -> rotations) besides the DMF solution and the
     chain tree's rotations.
@@ -177,14 +192,18 @@ def verify(
     rot, inlier = solutions[start]
     noise = NoiseModel(initial_threshold / 3.0, 1.0, initial_threshold)
     t = np.full(i.size, np.nan)
+    settled = False
     for _ in range(rounds):  # re-admit and drop edges by the data's own noise scale
         noise, new_inlier, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold,
                                                  tree)
         new_inlier |= known
         if np.array_equal(new_inlier, inlier):
+            settled = True
             break
         inlier = new_inlier
         rot = refine_least_squares(rot, i, j, R, w * inlier)
+    if not settled:  # report the noise and t of the final fit (its inliers stay)
+        noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold, tree)
     # The choice, by the truncated L1 cost over every input edge (Eq. 3 of the paper with
     # each edge's say capped at the initial threshold): a filter that condemned a subtree
     # or kept false closures pays for every edge it leaves unexplained. The re-solve must
@@ -192,7 +211,7 @@ def verify(
     # more accurate of the two when both explain the data.
     costs = {"robust": truncated_l1(rot, i, j, R, w, initial_threshold),
              "dmf": truncated_l1(dmf_rotations, i, j, R, w, initial_threshold)}
-    if costs["robust"] >= (1.0 - margin) * costs["dmf"]:
+    if not costs["robust"] < (1.0 - margin) * costs["dmf"]:  # NaN keeps the DMF solution
         dmf_noise, _, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w, dmf_kept,
                                                 max_threshold, tree)
         return VerifyOutcome(dmf_rotations, dmf_kept | known, dmf_noise, "dmf", costs, start,
