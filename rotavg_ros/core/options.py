@@ -146,7 +146,7 @@ class VerifyOptions:
     """Residual angle of the first GNC-TLS pass, before the noise is known: a random
     rotation is this close to a given one with probability 0.7%, and inlier noise up to
     about 10 deg per edge stays inside it. The noise fit then sets the threshold."""
-    max_threshold_deg: float = field(default=60.0, metadata=_flat("verify_max_threshold_deg"))
+    max_threshold_deg: float = field(default=90.0, metadata=_flat("verify_max_threshold_deg"))
     """Cap of the fitted inlier threshold (in standardized units, degrees)."""
     rounds: int = field(default=2, metadata=_flat("verify_rounds"))
     """Re-admit / drop rounds with the fitted threshold."""

@@ -1,21 +1,6 @@
 """Pieces shared by the DMF fits: the fit spec and result, factor shapes and
-initialisation, the structure-of-arrays edge blocks and the step-size schedule.
-
-Symmetric, explicitly rank-3 model (the paper's design)::
-
-    G_hat = H H^T,   H = W_1 W_2 ... W_{d/2},   W_{d/2} in R^{h x 3}, W_1 in R^{3N x h}
-
-with hidden width ``h`` (the paper uses h = 3N). The 3x3 block ``H_i`` (rows 3i..3i+2)
-estimates ``R_i Q`` for one unknown ``Q`` in O(3): world-to-node rotations up to gauge.
-
-Loss (Sec. IV-D), evaluated per observed block in O(|E|), never forming G_hat::
-
-    L = sum_{(i,j) in E} w_ij |H_i H_j^T - R_ij|_1  +  sum_i w_d |H_i H_i^T - I|_1
-
-Reweighting (Sec. IV-C): every ``reweight_every`` iterations after ``warmup``, with
-``r_ij = ||H_i H_j^T - R_ij||_F`` and ``tau = median(r)``: ``w_ij *= tau / r_ij`` where
-``r_ij > tau``.
-"""
+initialisation, the structure-of-arrays edge blocks and the step-size schedule. The model
+and the loss are described in :mod:`.dense`."""
 
 from __future__ import annotations
 

@@ -28,8 +28,6 @@ from rotavg_ros.core.dmf.common import (
     DMFFit,
     EdgeBlocks,
     FitSpec,
-    FloatArray,
-    IntArray,
     factor_shapes,
     h_t_from_nodes,
     init_factors,
@@ -43,6 +41,7 @@ from rotavg_ros.core.optim.adam import Adam
 from rotavg_ros.core.optim.factor_chain import FactorChain
 from rotavg_ros.core.optim.step_graph import StepGraph
 from rotavg_ros.core.options import DenseFitOptions
+from rotavg_ros.core.types import FloatArray, IntArray
 
 
 def fit_symmetric(

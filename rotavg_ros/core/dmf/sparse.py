@@ -11,8 +11,6 @@ from rotavg_ros.core.dmf.common import (
     DMFFit,
     EdgeBlocks,
     FitSpec,
-    FloatArray,
-    IntArray,
     factor_shapes,
     h_t_from_nodes,
     nodes_from_h_t,
@@ -22,6 +20,7 @@ from rotavg_ros.core.dmf.common import (
 from rotavg_ros.core.optim.factor_chain import FactorChain
 from rotavg_ros.core.optim.lbfgs import minimize_lbfgs
 from rotavg_ros.core.options import DenseFitOptions, SparseFitOptions
+from rotavg_ros.core.types import FloatArray, IntArray
 
 LBFGS_FTOL = 1e-12
 """Sparse mode: an L-BFGS run ends when a step lowers the loss by less than this,

@@ -44,6 +44,10 @@ from rotavg_ros.core.robust.gnc import gnc_tls
 from rotavg_ros.core.robust.noise import NoiseModel, fit_noise, is_inlier, log_likelihood
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
+CHOICE_SIGMAS = 3.0
+"""Cap of an edge's say in the choice, in fitted noise scales (the 97th percentile of an
+inlier's residual angle is 3.0 sigma)."""
+
 EXACT_LEVERAGE_EDGES = 100
 """At most this many high-leverage edges off the chain tree (loop closures) get their
 prediction variance solved exactly (three solves each)."""
@@ -82,9 +86,10 @@ def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> 
 
 def truncated_l1(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                  c: float) -> float:
-    """``sum_e w_e min(r_e, c)``: every edge counts, none by more than ``c`` (radians)."""
-    r = residual_angles(rot, i, j, R)
-    return float(np.sum(w * np.minimum(r, c)))
+    """``sum_e min(sqrt(w_e) r_e, c)``: every edge counts (its residual in units of its own
+    noise), none by more than ``c`` (radians of a unit-weight edge)."""
+    r = residual_angles(rot, i, j, R) * np.sqrt(w)
+    return float(np.sum(np.minimum(r, c)))
 
 
 def standardized_residuals(
@@ -160,7 +165,7 @@ def verify(
     dmf_rotations: FloatArray, dmf_kept: BoolArray, starts: dict[str, FloatArray],
     known_inlier: BoolArray | None = None,
     initial_threshold: float = math.radians(30.0),
-    max_threshold: float = math.radians(60.0),
+    max_threshold: float = math.radians(90.0),
     rounds: int = 2,
     margin: float = 0.02,
 ) -> VerifyOutcome:
@@ -205,12 +210,14 @@ def verify(
     if not settled:  # report the noise and t of the final fit (its inliers stay)
         noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold, tree)
     # The choice, by the truncated L1 cost over every input edge (Eq. 3 of the paper with
-    # each edge's say capped at the initial threshold): a filter that condemned a subtree
-    # or kept false closures pays for every edge it leaves unexplained. The re-solve must
-    # be clearly better (by ``margin``) to replace the DMF solution, whose L1 fit is the
-    # more accurate of the two when both explain the data.
-    costs = {"robust": truncated_l1(rot, i, j, R, w, initial_threshold),
-             "dmf": truncated_l1(dmf_rotations, i, j, R, w, initial_threshold)}
+    # each edge's say capped at CHOICE_SIGMAS noise scales, the scale fitted above): a
+    # filter that condemned a subtree, or false closures the DMF bent to fit, leave many
+    # edges unexplained, each at the cap; outliers cost both solutions the same cap. The
+    # re-solve must be clearly better (by ``margin``) to replace the DMF solution, whose L1
+    # fit is the more accurate of the two when both explain the data.
+    cap = CHOICE_SIGMAS * noise.sigma if math.isfinite(noise.sigma) else initial_threshold
+    costs = {"robust": truncated_l1(rot, i, j, R, w, cap),
+             "dmf": truncated_l1(dmf_rotations, i, j, R, w, cap)}
     if not costs["robust"] < (1.0 - margin) * costs["dmf"]:  # NaN keeps the DMF solution
         dmf_noise, _, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w, dmf_kept,
                                                 max_threshold, tree)
