@@ -186,7 +186,8 @@ def verify(
     chain_rot = tree_rotations(i, j, R, np.flatnonzero(tree), num_nodes)
     solutions: dict[str, tuple[FloatArray, BoolArray]] = {}
     seen: list[FloatArray] = []
-    for name, rotations in {"dmf": dmf_rotations, "chain": chain_rot, **starts}.items():
+    others = {"dmf": dmf_rotations, "chain": chain_rot, **starts}
+    for name, rotations in others.items():
         if any(np.allclose(rotations, other, atol=1e-9) for other in seen):
             continue  # the same start twice (a chain's spanning tree is the chain)
         seen.append(rotations)
