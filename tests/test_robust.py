@@ -167,3 +167,16 @@ def test_unknown_profile_is_an_input_error() -> None:
 
     with pytest.raises(InputError, match="profile"):
         SolverOptions.for_profile("fast")
+
+
+def test_default_profile_solves_a_chain_with_false_closures_like_the_oracle() -> None:
+    i, j, R, truth, bad = _chain(200, 24, 1 / 3, seed=6)
+    n, w = 200, np.ones(i.size)
+    default = average_rotations(n, i, j, R, w, SolverOptions.for_profile("default"))
+    oracle = average_rotations(n, i[~bad], j[~bad], R[~bad], w[~bad],
+                               SolverOptions.for_profile("paper"))
+    paper = average_rotations(n, i, j, R, w, SolverOptions.for_profile("paper"))
+    assert default.verification == "robust"
+    assert np.array_equal(~default.kept, bad)
+    assert _mean_error(default.rotations, truth) < 1.1 * _mean_error(oracle.rotations, truth)
+    assert _mean_error(paper.rotations, truth) > 5 * _mean_error(default.rotations, truth)

@@ -20,7 +20,8 @@ takes the solution, not the tree, as the reference, and lets the data set the th
 4. **Choice.** The truncated L1 cost over all input edges decides between the re-solve and
    the DMF solution, which is kept unless the re-solve is clearly (``margin``) better: a
    filter that condemned a subtree, or false closures the DMF bent to fit, lose; a DMF
-   solution that explains the data keeps its accuracy.
+   solution that explains the data keeps its accuracy. (The solver then fits the DMF again
+   on the re-solve's inliers: ``RotationAverager._refit_dmf``.)
 
 Conventions: world-to-node ``R_i``, ``R_ij ~= R_i R_j^T``, node 0 fixed (anchor).
 """
