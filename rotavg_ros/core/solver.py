@@ -27,7 +27,6 @@ from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.verify import (
-    CHOICE_SIGMAS,
     VerifyOutcome,
     truncated_l1,
     verify,
@@ -237,8 +236,8 @@ class RotationAverager:
             return out.rotations
         paper = RotationAverager(self.options.replace_flat(verify=False))
         refit = paper.solve_component(n, i[keep], j[keep], R[keep], w[keep]).rotations
-        cap = CHOICE_SIGMAS * out.noise.sigma if math.isfinite(out.noise.sigma) else math.pi
-        if truncated_l1(refit, i, j, R, w, cap) <= truncated_l1(out.rotations, i, j, R, w, cap):
+        # Judged as the verification judged the re-solve: same cost, same cap.
+        if truncated_l1(refit, i, j, R, w, out.cap) <= out.costs["robust"]:
             self._say("verification: the DMF refit on the kept edges replaces the re-solve")
             return refit
         return out.rotations

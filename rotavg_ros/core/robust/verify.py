@@ -70,6 +70,8 @@ class VerifyOutcome:
     untested: int = 0
     """Loop closures (edges off the chain tree) whose residual nothing could check: their
     leverage under the kept solution's fit is 1 (no other path constrains them)."""
+    cap: float = math.pi
+    """Cap of an edge's say in the choice's truncated L1 cost (``costs``), radians."""
 
 
 def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> BoolArray:
@@ -224,6 +226,6 @@ def verify(
         dmf_noise, _, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w, dmf_kept,
                                                 max_threshold, tree)
         return VerifyOutcome(dmf_rotations, dmf_kept | known, dmf_noise, "dmf", costs, start,
-                             int(np.sum(np.isnan(t_dmf) & ~tree)))
+                             int(np.sum(np.isnan(t_dmf) & ~tree)), cap)
     return VerifyOutcome(rot, inlier, noise, "robust", costs, start,
-                         int(np.sum(np.isnan(t) & ~tree)))
+                         int(np.sum(np.isnan(t) & ~tree)), cap)
