@@ -103,6 +103,10 @@ def _solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
     if res.verification:
         note += (f"; kept {res.verification}, noise {res.noise_sigma_deg:.2f} deg, "
                  f"{res.num_rejected_verify} rejected, {res.num_readmitted} re-admitted")
+        if res.num_relocalized:
+            note += f", {res.num_relocalized} relocalized"
+        if res.num_trusted_odometry:
+            note += f", {res.num_trusted_odometry} odometry trusted"
     return rot, wall, note
 
 

@@ -17,7 +17,8 @@ from rotavg_ros.core.robust.gauss_newton import (
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
 from rotavg_ros.core.robust.noise import fit_noise
-from rotavg_ros.core.robust.verify import chain_tree, verify
+from rotavg_ros.core.robust.relocalize import relocalize_nodes
+from rotavg_ros.core.robust.verify import chain_tree, odometry_edges, truncated_l1, verify
 from rotavg_ros.core.so3 import exp_map, random_rotations, rotation_angle
 from rotavg_ros.core.solver import average_rotations
 
@@ -180,3 +181,73 @@ def test_default_profile_solves_a_chain_with_false_closures_like_the_oracle() ->
     assert np.array_equal(~default.kept, bad)
     assert _mean_error(default.rotations, truth) < 1.1 * _mean_error(oracle.rotations, truth)
     assert _mean_error(paper.rotations, truth) > 5 * _mean_error(default.rotations, truth)
+
+
+def _chain_with_a_false_group(n: int, closures: int, group: int, seed: int
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                         np.ndarray]:
+    """The :func:`_chain` (true closures only) plus ``group`` mutually consistent false
+    closures a+t -> b+t (one wrong rotation W between two places), as perceptual aliasing
+    makes them: several wrong closures that agree with each other."""
+    i, j, R, truth, _ = _chain(n, closures, 0.0, seed)
+    rng = np.random.default_rng(seed + 100)
+    a, b = n // 5, 3 * n // 5
+    gi = np.arange(a, a + group)
+    gj = np.arange(b, b + group)
+    W = exp_map(np.array([0.0, math.radians(70), 0.0]))
+    gR = _noisy(np.einsum("eab,bc,edc->ead", truth[gi], W, truth[gj]), 1.0, rng)
+    bad = np.r_[np.zeros(i.size, bool), np.ones(group, bool)]
+    return np.r_[i, gi], np.r_[j, gj], np.concatenate([R, gR]), truth, bad
+
+
+def test_default_profile_rejects_a_group_of_consistent_false_closures() -> None:
+    i, j, R, truth, bad = _chain_with_a_false_group(300, 40, 8, seed=3)
+    n, w = 300, np.ones(i.size)
+    default = average_rotations(n, i, j, R, w, SolverOptions.for_profile("default"))
+    oracle = average_rotations(n, i[~bad], j[~bad], R[~bad], w[~bad],
+                               SolverOptions.for_profile("paper"))
+    assert not default.kept[bad].any()
+    assert _mean_error(default.rotations, truth) < 1.5 * _mean_error(oracle.rotations, truth)
+    # Without the odometry trusted, the group outvotes the true closures.
+    untrusted = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
+        "default", odometry="none"))
+    assert untrusted.kept[bad].all()
+    assert _mean_error(untrusted.rotations, truth) > 1.5 * _mean_error(default.rotations, truth)
+
+
+def test_odometry_rule() -> None:
+    i, j, _, _, _ = _chain(100, 10, 0.0, seed=1)
+    assert np.array_equal(odometry_edges(100, i, j, "auto", 10.0), np.abs(i - j) == 1)
+    assert not odometry_edges(100, i, j, "none", 10.0).any()
+    a, b = np.triu_indices(30, 1)  # every pair: an SfM view graph, not a pose graph
+    assert not odometry_edges(30, a, b, "auto", 10.0).any()
+    assert odometry_edges(30, a, b, "consecutive", 10.0).sum() == 29
+    with pytest.raises(ValueError):
+        odometry_edges(30, a, b, "odom", 10.0)
+
+
+def test_relocalize_moves_back_a_node_its_edges_disagree_with() -> None:
+    rng = np.random.default_rng(4)
+    truth = random_rotations(30, rng)
+    i, j = np.triu_indices(30, 1)
+    R = _noisy(_relative(truth, i, j), 1.0, rng)
+    w = np.ones(i.size)
+    cap = math.radians(3.0)
+    same, moves = relocalize_nodes(truth, i, j, R, w, cap)
+    assert moves == 0 and np.array_equal(same, truth)
+    off = truth.copy()
+    off[7] = exp_map(np.array([math.radians(90), 0.0, 0.0])) @ truth[7]
+    back, moves = relocalize_nodes(off, i, j, R, w, cap)
+    assert moves == 1
+    assert math.degrees(rotation_angle(back[7] @ truth[7].T)) < 3.0
+    assert truncated_l1(back, i, j, R, w, cap) < truncated_l1(off, i, j, R, w, cap)
+
+
+def test_gnc_per_edge_threshold_matches_a_scalar_one() -> None:
+    i, j, R, truth, bad = _chain(120, 20, 0.3, seed=2)
+    w = np.ones(i.size)
+    start = truth.copy()
+    scalar = gnc_tls(start, i, j, R, w, math.radians(10))
+    per_edge = gnc_tls(start, i, j, R, w, np.full(i.size, math.radians(10)))
+    assert np.allclose(scalar.rotations, per_edge.rotations)
+    assert np.array_equal(scalar.weights, per_edge.weights)

@@ -60,6 +60,8 @@ def diagnostic_values(
             "rejected_by_filter": result.num_filtered,
             "rejected_by_verification": result.num_rejected_verify,
             "readmitted_by_verification": result.num_readmitted,
+            "relocalized_by_verification": result.num_relocalized,
+            "trusted_odometry_edges": result.num_trusted_odometry,
             "verification": result.verification or "off",
             "noise_sigma_deg": result.noise_sigma_deg,
             "untested_loop_closures": result.num_untested,

@@ -18,6 +18,12 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    "edge robustly with the noise estimated from the data and keeps the "
                    "better-explaining solution; paper: Algorithm 1 and the DMF only, as "
                    "published (use it for the ablations) (default %(default)s)")
+    g.add_argument("--odometry", default=d.verify.odometry,
+                   choices=("auto", "consecutive", "none"),
+                   help="which edges the default profile's verification trusts as odometry: "
+                   "consecutive (nodes adjacent in file / arrival order), none, or auto "
+                   "(consecutive when they chain >= 90%% of the nodes of a sparse graph) "
+                   "(default %(default)s)")
     g.add_argument("--mode", default=d.mode, choices=("auto", "dense", "sparse"),
                    help="dense: the paper's DMF; sparse: chordal start + Huber + L-BFGS for "
                    "chain-like SLAM graphs; auto: by mean degree (default %(default)s)")
@@ -58,7 +64,7 @@ def options_from_args(args: argparse.Namespace) -> SolverOptions:
     progress = None if getattr(args, "quiet", False) else say
     return SolverOptions.for_profile(
         getattr(args, "profile", "default"),
-        mode=args.mode, depths=depths, iterations=args.iterations, tolerance=args.tolerance,
+        mode=args.mode, odometry=getattr(args, "odometry", "auto"), depths=depths, iterations=args.iterations, tolerance=args.tolerance,
         dtype=args.dtype, lr=args.lr, sigma=args.sigma,
         seed=args.seed, device=args.device,
         threads=None if args.threads == 0 else args.threads,  # 0 = default, as the node's

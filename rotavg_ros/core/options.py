@@ -150,6 +150,13 @@ class VerifyOptions:
     """Cap of the fitted inlier threshold (in standardized units, degrees)."""
     rounds: int = field(default=2, metadata=_flat("verify_rounds"))
     """Re-admit / drop rounds with the fitted threshold."""
+    odometry: str = field(default="auto", metadata=_flat("odometry"))
+    """Which edges are odometry, trusted as inliers by the re-solve and never capped in the
+    choice cost: ``consecutive`` (nodes adjacent in the order they were first added, e.g.
+    consecutive keyframes), ``none``, or ``auto`` (consecutive, when they chain at least 90%
+    of the nodes of a graph sparse enough for sparse mode; else none). A SLAM front end's
+    odometry is rarely wrong, and a group of consistent false closures can outvote the few
+    edges that cross a weakly connected part of the graph, unless those edges are trusted."""
 
 
 @dataclass

@@ -49,6 +49,10 @@ class SolveResult:
     """Loop closures (edges off a spanning tree) whose consistency no check could test: the
     ``paper`` profile tests only edges on triangles (or on a triangle-verified tree path);
     the verification tests every edge on a cycle."""
+    num_relocalized: int = 0
+    """Nodes the verification moved to where their own edges agree (relocalization)."""
+    num_trusted_odometry: int = 0
+    """Odometry edges the verification trusted as inliers (option ``odometry``)."""
     verification: str = ""
     """Which solution the verification kept (largest component): ``dmf`` (the filtered
     DMF), ``robust`` (its re-solve on every edge), ``failed`` (the verification raised;

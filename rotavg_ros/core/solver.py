@@ -28,6 +28,7 @@ from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.verify import (
     VerifyOutcome,
+    odometry_edges,
     truncated_l1,
     verify,
 )
@@ -55,6 +56,10 @@ class ComponentSolution:
     """Which solution the verification kept: ``dmf``, ``robust``, or empty (not run)."""
     untested: int = 0
     """Loop closures (edges off a spanning tree) that no check could test."""
+    relocalized: int = 0
+    """Node moves of the verification's relocalization (kept solution)."""
+    trusted: int = 0
+    """Odometry edges the verification trusted as inliers."""
 
 
 def rotations_from_factor(H: FloatArray) -> FloatArray:
@@ -140,6 +145,8 @@ class RotationAverager:
             noise_sigma_deg=out.noise_sigma_deg,
             verification=out.verification,
             num_untested=out.untested,
+            num_relocalized=out.relocalized,
+            num_trusted_odometry=out.trusted,
             cost_by_depth=out.cost_by_depth,
             duration_s=out.duration_s,
             iterations_by_depth=out.iterations_by_depth,
@@ -200,7 +207,8 @@ class RotationAverager:
                                      untested=untested)
         starts = {} if tree_rot is None else {"tree": tree_rot}  # the filter's tree
         try:
-            out = verify(n, i, j, R, w, rot, kept, starts,
+            odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
+            out = verify(n, i, j, R, w, rot, kept, starts, known_inlier=odometry,
                          initial_threshold=math.radians(opt.verify.initial_threshold_deg),
                          max_threshold=math.radians(opt.verify.max_threshold_deg),
                          rounds=opt.verify.rounds)
@@ -212,13 +220,16 @@ class RotationAverager:
         final = out.rotations
         if out.chosen == "robust":
             final = self._refit_dmf(n, i, j, R, w, out)
-            final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
-            final[0] = np.eye(3)
+        final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
+        final[0] = np.eye(3)
+        trusted = int(out.known.sum()) if out.known is not None else 0
         self._say(f"verification: kept the {out.chosen} solution, noise "
                   f"{out.noise.sigma_deg:.2f} deg per axis, {int((~out.inlier).sum())} "
-                  f"edges outside")
+                  f"edges outside, {trusted} odometry edges trusted, {out.relocalized} nodes "
+                  "relocalized")
         return ComponentSolution(final, out.inlier, best, costs, iterations, kept,
-                                 out.noise.sigma_deg, out.chosen, out.untested)
+                                 out.noise.sigma_deg, out.chosen, out.untested,
+                                 out.relocalized, trusted)
 
     def _refit_dmf(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                    out: VerifyOutcome) -> FloatArray:
@@ -236,8 +247,10 @@ class RotationAverager:
             return out.rotations
         paper = RotationAverager(self.options.replace_flat(verify=False))
         refit = paper.solve_component(n, i[keep], j[keep], R[keep], w[keep]).rotations
-        # Judged as the verification judged the re-solve: same cost, same cap.
-        if truncated_l1(refit, i, j, R, w, out.cap) <= out.costs["robust"]:
+        # Judged by the same cap, every edge capped: on the same inliers, the question is
+        # only which estimator fits the data better, not which edges to trust.
+        if (truncated_l1(refit, i, j, R, w, out.cap)
+                <= truncated_l1(out.rotations, i, j, R, w, out.cap)):
             self._say("verification: the DMF refit on the kept edges replaces the re-solve")
             return refit
         return out.rotations
@@ -395,6 +408,10 @@ class ArraySolution:
     """Solution the verification kept for the largest component (``dmf``/``robust``)."""
     untested: int = 0
     """Loop closures no check could test, over all components."""
+    relocalized: int = 0
+    """Nodes the verification relocalized, over all components."""
+    trusted: int = 0
+    """Odometry edges the verification trusted, over all components."""
 
 
 def average_rotations(
@@ -422,7 +439,7 @@ def average_rotations(
     filter_kept = np.ones(i.size, bool)
     comp_anchor: list[int] = []
     depth, costs, iterations, best_size = 0, {}, {}, 0
-    noise, verification, untested = math.nan, "", 0
+    noise, verification, untested, relocalized, trusted = math.nan, "", 0, 0, 0
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
         if label == 0 and anchor in nodes:
@@ -444,13 +461,15 @@ def average_rotations(
         kept[sel] = sol.kept
         filter_kept[sel] = sol.filter_kept
         untested += sol.untested
+        relocalized += sol.relocalized
+        trusted += sol.trusted
         if nodes.size > best_size:
             depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
             iterations = sol.iterations_by_depth
             noise, verification = sol.noise_sigma_deg, sol.verification
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
                          time.perf_counter() - t0, iterations, filter_kept, noise,
-                         verification, untested)
+                         verification, untested, relocalized, trusted)
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:

@@ -43,36 +43,40 @@ def tls_weights(r: FloatArray, c: float, mu: float) -> FloatArray:
 
 
 def gnc_tls(
-    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, c: float,
+    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    c: float | FloatArray,
     known_inlier: BoolArray | None = None, mu_factor: float = 2.0, max_steps: int = 40,
     gn_iterations: int = 1,
 ) -> GncResult:
-    """GNC-TLS from ``rot`` with inlier threshold ``c`` (radians) on the residual angle.
+    """GNC-TLS from ``rot`` with inlier threshold ``c`` (radians) on the residual angle: one
+    for every edge, or one per edge.
 
     ``w`` are the edges' own weights (the TLS weights multiply them). Stops when every
     weight is binary or after ``max_steps`` surrogate stages.
     """
     known = np.zeros(i.size, bool) if known_inlier is None else np.asarray(known_inlier, bool)
-    r = residual_angles(rot, i, j, R)
+    c = np.broadcast_to(np.asarray(c, float), (i.size,))
+    # The weights depend on r / c only: GNC runs on residuals in units of their threshold.
+    r = residual_angles(rot, i, j, R) / c
     r_max2 = float(np.max(r[~known] ** 2)) if np.any(~known) else 0.0
-    if r_max2 <= c * c:  # every residual already within the threshold: plain LS
+    if r_max2 <= 1.0:  # every residual already within the threshold: plain LS
         mu = np.inf
     else:
-        mu = max(c * c / max(2.0 * r_max2 - c * c, 1e-12), 1e-6)
+        mu = max(1.0 / max(2.0 * r_max2 - 1.0, 1e-12), 1e-6)
     gw = np.ones(i.size)
     steps = 0
     factor: Factor | None = None  # each stage preconditions the next one's solve
     while True:
-        gw = np.ones(i.size) if not np.isfinite(mu) else tls_weights(r, c, mu)
+        gw = np.ones(i.size) if not np.isfinite(mu) else tls_weights(r, 1.0, mu)
         gw[known] = 1.0
         for _ in range(gn_iterations):
             rot, factor = gauss_newton_step(rot, i, j, R, w * gw, factor)
-        r = residual_angles(rot, i, j, R)
+        r = residual_angles(rot, i, j, R) / c
         steps += 1
         binary = bool(np.all((gw == 0.0) | (gw == 1.0)))
         if not np.isfinite(mu) or steps >= max_steps or (binary and steps > 1):
             break
         mu *= mu_factor
-    final = np.where(r <= c, 1.0, 0.0)
+    final = np.where(r <= 1.0, 1.0, 0.0)
     final[known] = 1.0
     return GncResult(rot, final, steps)

@@ -17,7 +17,14 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    per edge, whether it is more likely an inlier or an outlier.
 3. **Re-admit and drop.** Up to ``rounds`` times: re-classify every edge so, and re-solve by
    geodesic least squares on the inliers.
-4. **Choice.** The truncated L1 cost over all input edges decides between the re-solve and
+4. **GNC at the data's threshold.** When ``GNC_SIGMAS`` noise scales are below the
+   initial threshold: GNC-TLS again at that threshold from every start, the odometry edges
+   (``known_inlier``) trusted from here on (known inliers, uncapped in the choice cost);
+   step 3 on each; the lowest choice cost is kept.
+5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
+   (:mod:`.relocalize`); if that lowers the choice cost, step 3 runs again from there. The
+   DMF solution's far-off nodes move the same way.
+6. **Choice.** The truncated L1 cost over all input edges decides between the re-solve and
    the DMF solution, which is kept unless the re-solve is clearly (``margin``) better: a
    filter that condemned a subtree, or false closures the DMF bent to fit, lose; a DMF
    solution that explains the data keeps its accuracy. (The solver then fits the DMF again
@@ -43,11 +50,20 @@ from rotavg_ros.core.robust.gauss_newton import (
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
 from rotavg_ros.core.robust.noise import NoiseModel, fit_noise, is_inlier, log_likelihood
+from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 CHOICE_SIGMAS = 3.0
 """Cap of an edge's say in the choice, in fitted noise scales (the 97th percentile of an
 inlier's residual angle is 3.0 sigma)."""
+
+GNC_SIGMAS = 4.0
+"""Threshold of the second GNC-TLS pass, in fitted noise scales (an inlier's residual angle
+exceeds 4.0 sigma with probability about 0.1%)."""
+
+ODOMETRY_COVERAGE = 0.9
+"""``odometry="auto"``: consecutive edges are odometry when they join at least this fraction
+of the consecutive node pairs."""
 
 EXACT_LEVERAGE_EDGES = 100
 """At most this many high-leverage edges off the chain tree (loop closures) get their
@@ -72,6 +88,10 @@ class VerifyOutcome:
     leverage under the kept solution's fit is 1 (no other path constrains them)."""
     cap: float = math.pi
     """Cap of an edge's say in the choice's truncated L1 cost (``costs``), radians."""
+    relocalized: int = 0
+    """Node moves of :func:`~.relocalize.relocalize_nodes` in the kept re-solve."""
+    known: BoolArray | None = None
+    """The trusted (odometry) edges: known inliers of the re-solve, uncapped in ``costs``."""
 
 
 def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> BoolArray:
@@ -87,12 +107,35 @@ def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> 
     return np.isin(edge_keys, keys)
 
 
+def odometry_edges(num_nodes: int, i: IntArray, j: IntArray, rule: str,
+                   max_mean_degree: float) -> BoolArray:
+    """The edges trusted as odometry, by ``rule``: ``consecutive`` (nodes adjacent in the
+    order they were added), ``none``, or ``auto``: consecutive edges when they chain at
+    least ODOMETRY_COVERAGE of the nodes and the graph is sparse (mean degree below
+    ``max_mean_degree``: a SLAM pose graph, not an SfM view graph, whose consecutive
+    images are just another pair)."""
+    if rule not in ("auto", "consecutive", "none"):
+        raise ValueError(f"odometry must be auto, consecutive or none, got {rule!r}")
+    consecutive = np.abs(i - j) == 1
+    if rule == "none":
+        return np.zeros(i.size, bool)
+    if rule == "auto":
+        pairs = np.unique(np.minimum(i, j)[consecutive]).size
+        chained = pairs >= ODOMETRY_COVERAGE * max(num_nodes - 1, 1)
+        sparse = 2.0 * i.size / max(num_nodes, 1) < max_mean_degree
+        if not (chained and sparse):
+            return np.zeros(i.size, bool)
+    return consecutive
+
+
 def truncated_l1(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-                 c: float) -> float:
+                 c: float, trusted: BoolArray | None = None) -> float:
     """``sum_e min(sqrt(w_e) r_e, c)``: every edge counts (its residual in units of its own
-    noise), none by more than ``c`` (radians of a unit-weight edge)."""
+    noise), none by more than ``c`` (radians of a unit-weight edge), except ``trusted``
+    edges (odometry), which count in full."""
     r = residual_angles(rot, i, j, R) * np.sqrt(w)
-    return float(np.sum(np.minimum(r, c)))
+    capped = np.minimum(r, c)
+    return float(np.sum(capped if trusted is None else np.where(trusted, r, capped)))
 
 
 def standardized_residuals(
@@ -155,6 +198,32 @@ def _fit_and_classify(
     return noise, inlier, t
 
 
+def _settle(
+    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    inlier: BoolArray, known: BoolArray, tree: BoolArray, rounds: int, max_threshold: float,
+    initial_threshold: float,
+) -> tuple[FloatArray, BoolArray, NoiseModel, FloatArray]:
+    """Up to ``rounds`` times: re-classify every edge by the noise model fitted to the
+    standardized residuals, and re-solve by least squares on the inliers. Returns the
+    rotations, inliers, noise model and standardized residuals of the final fit."""
+    noise = NoiseModel(initial_threshold / 3.0, 1.0, initial_threshold)
+    for _ in range(rounds):
+        noise, new_inlier, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold,
+                                                 tree)
+        new_inlier |= known
+        if np.array_equal(new_inlier, inlier):
+            return rot, inlier, noise, t
+        inlier = new_inlier
+        rot = refine_least_squares(rot, i, j, R, w * inlier)
+    noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold, tree)
+    return rot, inlier, noise, t  # the final fit's noise and t; its inliers stay
+
+
+def _cap(noise: NoiseModel, initial_threshold: float) -> float:
+    """Cap of an edge's say in the choice: CHOICE_SIGMAS fitted noise scales."""
+    return CHOICE_SIGMAS * noise.sigma if math.isfinite(noise.sigma) else initial_threshold
+
+
 def log_likelihood_of(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
                       w: FloatArray, max_threshold: float) -> tuple[float, NoiseModel]:
     """Log-likelihood of every edge's residual under the mixture fitted to them."""
@@ -178,12 +247,17 @@ def verify(
     ``starts`` are extra start points (name -> rotations) besides the DMF solution and the
     chain tree's rotations.
     """
-    known = np.zeros(i.size, bool) if known_inlier is None else known_inlier
+    odometry = np.zeros(i.size, bool) if known_inlier is None else known_inlier
+    known = np.zeros(i.size, bool)  # trusted edges: none until the noise scale is known
 
-    def robust_from(start: FloatArray) -> tuple[FloatArray, BoolArray]:
-        g = gnc_tls(start, i, j, R, w, initial_threshold, known)
+    def robust_from(start: FloatArray, threshold: float | FloatArray = initial_threshold
+                    ) -> tuple[FloatArray, BoolArray]:
+        g = gnc_tls(start, i, j, R, w, threshold, known)
         inlier = (g.weights > 0) | known
         return refine_least_squares(g.rotations, i, j, R, w * inlier), inlier
+
+    def cost(rotations: FloatArray) -> float:
+        return truncated_l1(rotations, i, j, R, w, cap, known)
 
     tree = chain_tree(num_nodes, i, j, w)
     chain_rot = tree_rotations(i, j, R, np.flatnonzero(tree), num_nodes)
@@ -199,33 +273,60 @@ def verify(
               for k, v in solutions.items()}
     start = max(scored, key=lambda k: scored[k])
     rot, inlier = solutions[start]
-    noise = NoiseModel(initial_threshold / 3.0, 1.0, initial_threshold)
-    t = np.full(i.size, np.nan)
-    settled = False
-    for _ in range(rounds):  # re-admit and drop edges by the data's own noise scale
-        noise, new_inlier, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold,
-                                                 tree)
-        new_inlier |= known
-        if np.array_equal(new_inlier, inlier):
-            settled = True
-            break
-        inlier = new_inlier
-        rot = refine_least_squares(rot, i, j, R, w * inlier)
-    if not settled:  # report the noise and t of the final fit (its inliers stay)
-        noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold, tree)
+    rot, inlier, noise, t = _settle(rot, i, j, R, w, inlier, known, tree, rounds,
+                                    max_threshold, initial_threshold)
+    cap = _cap(noise, initial_threshold)
+    # GNC again at the threshold the data's noise sets, when that is tighter, with the
+    # odometry trusted from here on: at the fixed initial threshold a group of mutually
+    # consistent false closures can bend a weakly connected graph with every residual
+    # under it; at a few noise scales it cannot, and cutting the odometry to fit them
+    # costs the cut edges' full residuals. (At a noise this high, odometry and closures
+    # are judged alike, as before.)
+    adaptive = GNC_SIGMAS * noise.sigma / np.sqrt(w)
+    if math.isfinite(noise.sigma) and float(np.median(adaptive)) < initial_threshold:
+        threshold = np.minimum(adaptive, initial_threshold)
+        known = odometry
+        inlier |= known
+        best_cost = cost(rot)
+        for begin in [*seen, rot]:  # GNC at a tight threshold depends on its start
+            tight_rot, tight_inlier = robust_from(begin, threshold)
+            tight = _settle(tight_rot, i, j, R, w, tight_inlier, known, tree, rounds,
+                            max_threshold, initial_threshold)
+            tight_cost = cost(tight[0])
+            if tight_cost < best_cost:
+                best_cost = tight_cost
+                rot, inlier, noise, t = tight
+        cap = _cap(noise, initial_threshold)
+    relocalized = 0
+    # Nodes the re-solve left far off (all their true edges dropped) move to where their
+    # own edges agree, if that lowers the choice cost; the inliers then settle again.
+    moved_rot, moves = relocalize_nodes(rot, i, j, R, w, cap, known)
+    if moves:
+        fit = (residual_angles(moved_rot, i, j, R) * np.sqrt(w) <= cap) | known
+        moved_rot = refine_least_squares(moved_rot, i, j, R, w * fit)
+        moved = _settle(moved_rot, i, j, R, w, fit, known, tree, rounds, max_threshold,
+                        initial_threshold)
+        if cost(moved[0]) < cost(rot):
+            rot, inlier, noise, t = moved
+            relocalized = moves
+            cap = _cap(noise, initial_threshold)
     # The choice, by the truncated L1 cost over every input edge (Eq. 3 of the paper with
     # each edge's say capped at CHOICE_SIGMAS noise scales, the scale fitted above): a
     # filter that condemned a subtree, or false closures the DMF bent to fit, leave many
     # edges unexplained, each at the cap; outliers cost both solutions the same cap. The
     # re-solve must be clearly better (by ``margin``) to replace the DMF solution, whose L1
     # fit is the more accurate of the two when both explain the data.
-    cap = CHOICE_SIGMAS * noise.sigma if math.isfinite(noise.sigma) else initial_threshold
-    costs = {"robust": truncated_l1(rot, i, j, R, w, cap),
-             "dmf": truncated_l1(dmf_rotations, i, j, R, w, cap)}
+    # The DMF solution's far-off nodes move the same way (each move lowers its cost).
+    dmf_moved, dmf_moves = relocalize_nodes(dmf_rotations, i, j, R, w, cap, known)
+    if dmf_moves and cost(dmf_moved) < cost(dmf_rotations):
+        dmf_rotations = dmf_moved
+    else:
+        dmf_moves = 0
+    costs = {"robust": cost(rot), "dmf": cost(dmf_rotations)}
     if not costs["robust"] < (1.0 - margin) * costs["dmf"]:  # NaN keeps the DMF solution
         dmf_noise, _, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w, dmf_kept,
                                                 max_threshold, tree)
         return VerifyOutcome(dmf_rotations, dmf_kept | known, dmf_noise, "dmf", costs, start,
-                             int(np.sum(np.isnan(t_dmf) & ~tree)), cap)
+                             int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known)
     return VerifyOutcome(rot, inlier, noise, "robust", costs, start,
-                         int(np.sum(np.isnan(t) & ~tree)), cap)
+                         int(np.sum(np.isnan(t) & ~tree)), cap, relocalized, known)
