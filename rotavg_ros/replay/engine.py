@@ -123,7 +123,7 @@ class Replayer:
         t_wall = time.perf_counter()
         report = self.report
         try:
-            with open_bag(self.config.bag) as source:
+            with open_bag(self.config.bag, self.config.merge_mcap_files) as source:
                 report.reader = source.reader
                 edge_topics, gt_topic = self._choose_topics(source)
                 if gt_topic:
