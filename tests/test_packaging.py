@@ -3,7 +3,8 @@
 * ``msg_adapters/`` installs as ``rotavg_ros.msg_adapters`` and never as a top-level
   ``msg_adapters`` (a generic name in site-packages would clash with other packages).
 * ``package.xml`` names only rosdep keys known to resolve on Ubuntu 24.04 + Jazzy
-  (docs/install.md), and every third-party module that the installed code imports is either
+  (docs/install.md), and every third-party module that the installed code (package and launch
+  file) imports is either
   declared there or pinned in ``requirements-colcon.txt`` (the pip step of a colcon
   workspace).
 
@@ -48,7 +49,9 @@ def _colcon_pins() -> set[str]:
 def _third_party_imports() -> set[str]:
     stdlib = set(sys.stdlib_module_names) | {"__future__"}
     names: set[str] = set()
-    for path in [*(REPO / "rotavg_ros").rglob("*.py"), *(REPO / "msg_adapters").glob("*.py")]:
+    files = [*(REPO / "rotavg_ros").rglob("*.py"), *(REPO / "msg_adapters").glob("*.py"),
+             *(REPO / "launch").glob("*.py")]
+    for path in files:
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.Import):
                 names.update(a.name.split(".")[0] for a in node.names)
