@@ -4,9 +4,8 @@
   ``msg_adapters`` (a generic name in site-packages would clash with other packages).
 * ``package.xml`` names only rosdep keys known to resolve on Ubuntu 24.04 + Jazzy
   (docs/install.md), and every third-party module that the installed code (package and launch
-  file) imports is either
-  declared there or pinned in ``requirements-colcon.txt`` (the pip step of a colcon
-  workspace).
+  file) imports is either declared there or pinned in ``requirements-colcon.txt`` (the pip
+  step of a colcon workspace).
 
 ``scripts/check_colcon.sh`` (CI) checks the same layout in a real colcon install tree.
 """
