@@ -14,7 +14,10 @@ cd "$(dirname "$0")/.."
 REPO="$PWD"
 bash scripts/setup_venv.sh
 PY="$(cd "${ROTAVG_VENV:-.venv}" && pwd)/bin/python"
-COLCON_PIN="colcon-common-extensions==0.3.0"
+# The meta-package and what the build depends on, pinned (versions of November 2026).
+COLCON_PINS=(colcon-common-extensions==0.3.0 colcon-core==0.21.3 colcon-ros==0.5.0
+             colcon-python-setup-py==0.2.9 colcon-library-path==0.2.1 catkin-pkg==1.1.1
+             setuptools==79.0.1)
 STARTUP_TIMEOUT_S="${ROTAVG_STARTUP_TIMEOUT_S:-60}"
 
 WS="$(mktemp -d)"
@@ -27,9 +30,9 @@ trap cleanup EXIT
 t0=$(date +%s)
 say() { echo "[check_colcon +$(( $(date +%s) - t0 ))s] $*" >&2; }
 
-say "installing $COLCON_PIN into $WS/colcon"
+say "installing ${COLCON_PINS[0]} into $WS/colcon"
 log="$WS/pip.log"
-if ! "$PY" -m pip install -q --target "$WS/colcon" "$COLCON_PIN" >"$log" 2>&1; then
+if ! "$PY" -m pip install -q --target "$WS/colcon" "${COLCON_PINS[@]}" >"$log" 2>&1; then
   grep -v "^WARNING: Location" "$log" | tail -30 >&2
   exit 1
 fi
