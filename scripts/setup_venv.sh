@@ -2,8 +2,9 @@
 # Create (or reuse) the project venv with every pinned dependency and the package itself.
 # Idempotent: re-installs only when a requirements file, setup.py or ROTAVG_TORCH_INDEX changed.
 # ROTAVG_TORCH_INDEX=URL installs torch (the pinned version) from that package index alone,
-# e.g. https://download.pytorch.org/whl/cpu for the CPU-only build (about 200 MB instead of
-# the CUDA build's several GB); unset, torch comes from the default index like the rest.
+# e.g. https://download.pytorch.org/whl/cpu for the CPU-only build (a 190 MB wheel, where
+# PyPI's Linux torch is the CUDA build with GBs of nvidia-* wheels); unset, torch comes from
+# the default index like the rest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV="${ROTAVG_VENV:-.venv}"
