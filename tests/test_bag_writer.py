@@ -198,7 +198,7 @@ def test_bag_qos_matches_what_the_node_offers() -> None:
 
             assert wait_until(offered, 5.0)
             (info,) = [i for i in node.get_publishers_info_by_topic(live)
-                       if i.node_name == NODE]
+                       if i.node_name == NODE and i.node_namespace == ns]
             profile = info.qos_profile
             assert profile.reliability == ReliabilityPolicy.RELIABLE
             want = (DurabilityPolicy.TRANSIENT_LOCAL if qos.durability == "transient_local"
