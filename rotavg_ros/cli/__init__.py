@@ -11,6 +11,7 @@ import sys
 from collections.abc import Sequence
 
 from rotavg_ros.cli.bench import cmd_bench
+from rotavg_ros.cli.evaluate import HELP as EVALUATE_HELP
 from rotavg_ros.cli.evaluate import cmd_evaluate
 from rotavg_ros.cli.replay import register as register_replay
 from rotavg_ros.cli.solve import cmd_solve
@@ -32,9 +33,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress lines and no result line (warnings and errors still)")
     add_solver_arguments(s)
     s.set_defaults(func=cmd_solve)
-    e = sub.add_parser("evaluate", help="gauge-align an estimate and print its errors")
+    e = sub.add_parser("evaluate", help="gauge-align an estimate and print its errors",
+                       description="Gauge-align an estimate to a ground truth and print the\n"
+                       "mean / median / max per-node error in degrees.", epilog=EVALUATE_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     e.add_argument("estimate", help=".g2o written by 'rotavg solve'")
-    e.add_argument("ground_truth", help="1DSfM .npz with R_gt, or a .npz with R_ref / R_gt")
+    e.add_argument("ground_truth", help="1DSfM .npz with R_gt, or a .npz with R_ref / R_gt: "
+                   "world-to-node rotations (see below)")
     e.set_defaults(func=cmd_evaluate)
     b = sub.add_parser("bench", add_help=False,
                        help="benchmark on the shared data (source checkout: "

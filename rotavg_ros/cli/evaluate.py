@@ -1,15 +1,48 @@
-"""``rotavg evaluate EST.g2o GT.npz``: gauge-align an estimate and print its errors."""
+"""``rotavg evaluate EST.g2o GT.npz``: gauge-align an estimate and print its errors.
+
+Ground truth is world-to-node (``R_i``, ``x_node = R_i x_world``; an edge is
+``R_ij = R_i R_j^T``); the estimate's g2o vertices are node-to-world and are transposed on
+reading. A ground truth that fits far better transposed draws a warning (:data:`HELP`).
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from rotavg_ros.cli.output import warn
-from rotavg_ros.core.metrics import evaluate
+from rotavg_ros.core.metrics import ErrorStats, evaluate
 from rotavg_ros.errors import InputError
 from rotavg_ros.io.g2o import VERTEX_TAG, read_g2o_vertices
 from rotavg_ros.io.onedsfm import open_npz, read_1dsfm_npz, read_rotations_npz
+
+HELP = """\
+Ground-truth convention: rotations R_i are world-to-node (x_node = R_i x_world), the
+convention in which an edge measures R_ij = R_i R_j^T; the 1DSfM R_gt arrays are in it.
+In a .npz, R_ref (or else R_gt) holds them, one row per node id. The estimate's g2o
+vertices are node-to-world (g2o's convention, as 'rotavg solve' and 'rotavg replay
+--output-g2o' write them) and are transposed on reading. Errors are per-node geodesic
+angles after the best gauge alignment R_est_i ~ R_gt_i Q. If the ground truth fits far
+better transposed (mean error under half, and 5 degrees or more lower), evaluate warns
+that it looks node-to-world; transpose it before comparing.
+"""
+TRANSPOSED_RATIO = 0.5
+TRANSPOSED_MIN_GAIN_DEG = 5.0
+
+
+def transposed_warning(est: dict[int, Any], gt: dict[int, Any],
+                       stats: ErrorStats) -> str | None:
+    """A warning when ``gt`` transposed (read as node-to-world) fits far better."""
+    flipped = evaluate(est, {k: np.asarray(r).T for k, r in gt.items()})
+    if (flipped.mean_deg < TRANSPOSED_RATIO * stats.mean_deg
+            and stats.mean_deg - flipped.mean_deg >= TRANSPOSED_MIN_GAIN_DEG):
+        return (f"ground truth looks transposed (node-to-world?): transposed it fits with "
+                f"mean {flipped.mean_deg:.3f} deg instead of {stats.mean_deg:.3f} deg; "
+                "evaluate expects world-to-node rotations (R_ij = R_i R_j^T)")
+    return None
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -34,6 +67,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         stats = evaluate(est, gt)
     except ValueError as exc:  # no common ids, or malformed rotations
         raise InputError(f"{args.estimate} vs {gt_path}: {exc}") from exc
+    if (flipped := transposed_warning(est, gt, stats)) is not None:
+        warn(flipped)
     missing = len(set(gt) - set(est))
     extra = len(set(est) - set(gt))
     if missing or extra:

@@ -41,6 +41,9 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--edge-topics", nargs="+", metavar="TOPIC",
                    help="edge topics (default: every TransformStamped, Odometry and TFMessage "
                    "topic except the ground truth, /tf and /tf_static)")
+    p.add_argument("--merge-mcap-files", action="store_true",
+                   help="BAG is a directory without metadata.yaml holding several .mcap "
+                   "files: read them as one bag, in log-time order (refused otherwise)")
     p.add_argument("--quiet", "-q", action="store_true",
                    help="no progress bar and no per-solve lines (the summary is printed)")
     p.add_argument("--verbose", "-v", action="store_true", help="print the solver's progress")
@@ -121,6 +124,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
         output_g2o=Path(args.output_g2o) if args.output_g2o else None,
         gt_topic=args.ground_truth_topic,
         edge_topics=edge_topics,
+        merge_mcap_files=args.merge_mcap_files,
         node_name=args.node_name,
         quiet=args.quiet,
     )

@@ -10,7 +10,11 @@ import math
 from collections.abc import Hashable
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
+
+MAX_SIZES_LISTED = 8
 
 
 @dataclass
@@ -57,3 +61,19 @@ class SolveResult:
     """Which solution the verification kept (largest component): ``dmf`` (the filtered
     DMF), ``robust`` (its re-solve on every edge), ``failed`` (the verification raised;
     the DMF solution stands) or empty (``paper`` profile)."""
+
+
+def components_warning(result: SolveResult) -> str | None:
+    """One line when the solution has several connected components (else None): how many,
+    their sizes, and that each is only defined up to its own gauge."""
+    count = len(result.anchors)
+    if count <= 1:
+        return None
+    sizes = sorted(np.bincount(np.asarray(result.component), minlength=count).tolist(),
+                   reverse=True)
+    listed = ", ".join(str(n) for n in sizes[:MAX_SIZES_LISTED])
+    if count > MAX_SIZES_LISTED:
+        listed += f", ... {count - MAX_SIZES_LISTED} more"
+    return (f"the graph has {count} connected components (sizes {listed} nodes); each "
+            "component's rotations are defined only up to its own gauge (its anchor node gets "
+            "identity), so rotations from different components cannot be compared")

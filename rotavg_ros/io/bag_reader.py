@@ -238,6 +238,13 @@ def _storage_files(path: Path) -> list[Path]:
     return files or sorted(path.glob("*.mcap"))
 
 
+def _loose_mcap_files(path: Path) -> list[Path]:
+    """The ``.mcap`` files of a directory without ``metadata.yaml`` (else [])."""
+    if not path.is_dir() or (path / "metadata.yaml").exists():
+        return []
+    return sorted(f for f in path.glob("*.mcap") if f.is_file())
+
+
 @dataclass
 class _Scan:
     topics: dict[str, str] = field(default_factory=dict)
@@ -318,11 +325,23 @@ def _rosbags_source(path: Path, reader: Reader, store: Typestore,
                      stores, store, reader, _storage_files(path))
 
 
-def open_bag(path: str | Path) -> BagSource:
-    """Open a rosbag2 directory or a lone ``.mcap`` (see the module docstring)."""
+def open_bag(path: str | Path, merge_mcap_files: bool = False) -> BagSource:
+    """Open a rosbag2 directory or a lone ``.mcap`` (see the module docstring).
+
+    A directory without ``metadata.yaml`` that holds several ``.mcap`` files is refused
+    (they may be unrelated recordings) unless ``merge_mcap_files``: then they are read as
+    one bag, in log-time order.
+    """
     path = Path(path)
     if not path.exists():
         raise BagError(f"{path}: no such file or directory")
+    loose = _loose_mcap_files(path)
+    if len(loose) > 1 and not merge_mcap_files:
+        names = ", ".join(f.name for f in loose[:5]) + (", ..." if len(loose) > 5 else "")
+        raise BagError(
+            f"{path}: no metadata.yaml, and {len(loose)} .mcap files ({names}) that may be "
+            "separate recordings; replay one file, or pass --merge-mcap-files to read them "
+            "all as one bag")
     store = get_typestore(Stores.ROS2_JAZZY)
     stores: dict[str, Typestore] = {}
     problems: list[str] = []
@@ -349,6 +368,9 @@ def open_bag(path: str | Path) -> BagSource:
         raise BagError(f"{path}: not an MCAP bag ({reason}; {names}: no MCAP magic)")
     problems.append(f"rosbags could not open the bag ({reason}); reading it record by "
                     "record with the mcap stream reader")
+    if len(loose) > 1:
+        problems.append(f"no metadata.yaml: read its {len(loose)} .mcap files as one bag "
+                        "(--merge-mcap-files)")
     scan = _scan_files(files, problems)
     for topic, (name, encoding, data) in scan.schemas.items():
         if encoding in ("ros2msg", "ros2idl"):

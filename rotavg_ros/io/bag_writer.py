@@ -1,4 +1,11 @@
-"""rosbag2 MCAP writer for the node's outputs (rosbags' writer, Jazzy typestore, zstd)."""
+"""rosbag2 MCAP writer for the node's outputs (Jazzy metadata, CRCs, offered QoS per topic).
+
+The bag holds what ``rotavg_node`` publishes, with the QoS it offers, so that ``ros2 bag
+play`` republishes ``~/orientations`` and ``~/markers`` transient-local (latched) as the node
+does; ``/tf`` (for RViz / Foxglove; the node itself publishes no ``/tf``) and
+``/diagnostics`` are volatile. Writing: :mod:`rotavg_ros.io.rosbag2_mcap`; serialisation:
+:mod:`rotavg_ros.io.bag_messages` (rosbags, Jazzy typestore).
+"""
 
 from __future__ import annotations
 
@@ -15,15 +22,27 @@ from rotavg_ros.io.bag_messages import (
     TRANSFORM_STAMPED,
     MessageFactory,
 )
+from rotavg_ros.io.rosbag2_mcap import OfferedQos, Rosbag2McapWriter
+
+LATCHED = OfferedQos(reliability="reliable", durability="transient_local")
+VOLATILE = OfferedQos(reliability="reliable", durability="volatile")
+
+
+def output_topics(node_name: str) -> dict[str, tuple[str, str, OfferedQos]]:
+    """key -> (topic, type, offered QoS) of the outputs, as ``rotavg_node`` offers them."""
+    return {
+        "orientations": (f"/{node_name}/orientations", TRANSFORM_STAMPED, LATCHED),
+        "tf": ("/tf", TF_MESSAGE, VOLATILE),
+        "markers": (f"/{node_name}/markers", MARKER_ARRAY, LATCHED),
+        "diagnostics": ("/diagnostics", DIAGNOSTIC_ARRAY, VOLATILE),
+    }
 
 
 class OutputBag:
-    """rosbag2 MCAP writer for the node's outputs (rosbags, Jazzy typestore)."""
+    """rosbag2 MCAP bag of the node's outputs (see the module docstring)."""
 
     def __init__(self, path: Path, node_name: str, factory: MessageFactory,
-                 overwrite: bool = False) -> None:
-        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
-
+                 overwrite: bool = False, chunk_size: int = 1 << 20) -> None:
         if path.exists():
             if not overwrite:
                 raise InputError(f"{path} exists; pass --overwrite to replace it")
@@ -31,19 +50,9 @@ class OutputBag:
                 raise InputError(f"{path} exists and is not a rosbag2 bag; not replacing it")
             shutil.rmtree(path)
         self.factory = factory
-        self.writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-        self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        self.writer.open()
-        store = factory.typestore
-        self.conns = {
-            "orientations": self.writer.add_connection(
-                f"/{node_name}/orientations", TRANSFORM_STAMPED, typestore=store),
-            "tf": self.writer.add_connection("/tf", TF_MESSAGE, typestore=store),
-            "markers": self.writer.add_connection(
-                f"/{node_name}/markers", MARKER_ARRAY, typestore=store),
-            "diagnostics": self.writer.add_connection(
-                "/diagnostics", DIAGNOSTIC_ARRAY, typestore=store),
-        }
+        self.writer = Rosbag2McapWriter(path, factory.typestore, chunk_size=chunk_size)
+        self.conns = {key: self.writer.add_topic(topic, msgtype, [qos])
+                      for key, (topic, msgtype, qos) in output_topics(node_name).items()}
         self.counts: Counter[str] = Counter()
 
     def write(self, key: str, msg: Any, time_ns: int) -> None:

@@ -50,6 +50,9 @@ class ReplayConfig:
     output_g2o: Path | None = None
     gt_topic: str = DEFAULT_GT_TOPIC
     edge_topics: list[str] | None = None
+    merge_mcap_files: bool = False
+    """A directory without metadata.yaml and with several .mcap files: read them as one bag
+    (refused otherwise)."""
     node_name: str = NODE_NAME
     quiet: bool = False
     progress: bool | None = None

@@ -21,11 +21,12 @@ What it does
   diagnostics if the counters moved (rejections). After the last message one more tick runs,
   so the final graph is always solved. Solving takes no bag time here (the live node keeps
   ingesting while it solves), so replay is deterministic.
-* ``--output OUT``: a rosbag2 MCAP bag (Jazzy types, zstd-compressed chunks) with what the
-  node would publish, stamped (header and log time) at each solve's bag time:
-  ``/<node>/orientations`` (TransformStamped per node, node-to-world, parent
-  ``world_frame``), ``/tf`` (one TFMessage with all of them), ``/<node>/markers``
-  (MarkerArray) and ``/diagnostics`` (DiagnosticArray).
+* ``--output OUT``: a rosbag2 MCAP bag as Jazzy writes one (:mod:`rotavg_ros.io.bag_writer`:
+  metadata version 9, CRCs, each topic's offered QoS) with what the node would publish,
+  stamped (header and log time) at each solve's bag time: ``/<node>/orientations``
+  (TransformStamped per node, node-to-world, parent ``world_frame``), ``/tf`` (one
+  TFMessage with all of them), ``/<node>/markers`` (MarkerArray) and ``/diagnostics``
+  (DiagnosticArray).
 * Ground truth: a ``TransformStamped`` (or ``TFMessage``) topic, default ``/ground_truth``,
   ``header.frame_id = world``, ``child_frame_id = <node>``, rotation node-to-world (the form
   of the published orientations). It is read first, so every solve is scored (gauge-aligned,
@@ -122,7 +123,7 @@ class Replayer:
         t_wall = time.perf_counter()
         report = self.report
         try:
-            with open_bag(self.config.bag) as source:
+            with open_bag(self.config.bag, self.config.merge_mcap_files) as source:
                 report.reader = source.reader
                 edge_topics, gt_topic = self._choose_topics(source)
                 if gt_topic:
