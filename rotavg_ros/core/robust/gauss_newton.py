@@ -73,7 +73,8 @@ class Factor:
         self.free = free
         self._dense = None
         self._lu = None
-        if free.size <= DENSE_MAX and Hf.nnz > DENSE_FILL * free.size ** 2 or free.size <= 1200:
+        if free.size <= DENSE_MAX and (Hf.nnz > DENSE_FILL * free.size ** 2
+                                       or free.size <= DENSE_ALWAYS):
             self._dense = cho_factor(Hf.toarray(), lower=True, check_finite=False)
         else:
             self._lu = splu(Hf, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
@@ -92,10 +93,13 @@ class Factor:
 
 DENSE_MAX = 3000
 """Free coordinates up to which a normal matrix with more than ``DENSE_FILL`` of its entries
-set is solved densely (Cholesky, 72 MB at most), and below 1,200 always: random view graphs
-fill SuperLU's factors almost completely (1,000 nodes, 20,000 edges: 0.95 s per SuperLU
-factorization, 0.13 s dense), while chains and pose graphs stay sparse."""
+set is solved densely (Cholesky, 72 MB at most): random view graphs fill SuperLU's factors
+almost completely (1,000 nodes, 20,000 edges: 0.95 s per SuperLU factorization, 0.13 s
+dense), while chains and pose graphs stay sparse (a 300-keyframe chain: 50 ms dense, about
+1 ms sparse)."""
 DENSE_FILL = 0.02
+DENSE_ALWAYS = 300
+"""Free coordinates up to which every normal matrix is solved densely (a few ms)."""
 
 
 def _normal_matrix(rot: FloatArray, i: IntArray, j: IntArray, w: FloatArray

@@ -18,7 +18,8 @@ takes the solution, not the tree, as the reference, and lets the data set the th
 3. **Re-admit and drop.** Up to ``rounds`` times: re-classify every edge so, and re-solve by
    geodesic least squares on the inliers.
 4. **GNC at the data's threshold.** When ``GNC_SIGMAS`` noise scales are below the
-   initial threshold: GNC-TLS again at that threshold from every start, the odometry edges
+   initial threshold: GNC-TLS again at that threshold from step 3's solution and from the
+   odometry chain, the odometry edges
    (``known_inlier``) trusted from here on (known inliers, uncapped in the choice cost);
    step 3 on each; the lowest choice cost is kept.
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
@@ -287,14 +288,19 @@ def verify(
         threshold = np.minimum(adaptive, initial_threshold)
         known = odometry
         inlier |= known
-        best_cost = cost(rot)
-        for begin in [*seen, rot]:  # GNC at a tight threshold depends on its start
+        # GNC at a tight threshold depends on its start: from step 3's solution and from
+        # the odometry chain (which no false closure bends), the lower cost wins; its
+        # inliers then settle.
+        candidates: list[tuple[float, FloatArray, BoolArray]] = []
+        for begin in (rot, chain_rot):
             tight_rot, tight_inlier = robust_from(begin, threshold)
-            tight = _settle(tight_rot, i, j, R, w, tight_inlier, known, tree, rounds,
+            if not any(np.array_equal(tight_inlier, c[2]) for c in candidates):
+                candidates.append((cost(tight_rot), tight_rot, tight_inlier))
+        best = min(candidates, key=lambda c: c[0])
+        if not np.array_equal(best[2], inlier):  # else: the same fit as step 3's
+            tight = _settle(best[1], i, j, R, w, best[2], known, tree, rounds,
                             max_threshold, initial_threshold)
-            tight_cost = cost(tight[0])
-            if tight_cost < best_cost:
-                best_cost = tight_cost
+            if cost(tight[0]) < cost(rot):
                 rot, inlier, noise, t = tight
         cap = _cap(noise, initial_threshold)
     relocalized = 0
