@@ -704,6 +704,36 @@ def test_params_file_via_cli_args(ros: RosHarness, tmp_path: Path) -> None:  # n
     np.testing.assert_allclose(client.latest_orientations()["n1"], np.eye(3), atol=1e-12)
 
 
+def test_integers_for_doubles_accepted_and_misspelled_names_warned(
+    ros: RosHarness, tmp_path: Path, capfd: pytest.CaptureFixture[str],  # noqa: F811
+) -> None:
+    params = tmp_path / "params.yaml"
+    params.write_text(
+        f"{ros.namespace}/rotavg_node:\n"
+        "  ros__parameters:\n"
+        "    sigma: 1\n"
+        "    marker_spacng: 2.0\n"
+    )
+    node = ros.add(RotavgNode(
+        solve_fn=spanning_tree_solve, context=ros.context, namespace=ros.namespace,
+        cli_args=["--ros-args", "--params-file", str(params), "-p", "solve_period:=2",
+                  "-p", "solve_perod:=1", "-p", "iterations:=50"]))
+    for name, want in (("solve_period", 2.0), ("sigma", 1.0)):
+        param = node.get_parameter(name)
+        assert param.type_ == Parameter.Type.DOUBLE and param.value == want, name
+    assert node.get_parameter("iterations").value == 50
+    assert node._settings.solver.filter.sigma == 1.0
+    err = capfd.readouterr().err
+    node2 = ros.add(RotavgNode(
+        solve_fn=spanning_tree_solve, context=ros.context, namespace=ros.namespace,
+        node_name="other", cli_args=["--ros-args", "-p", "solve_perod:=1"]))
+    err += capfd.readouterr().err
+    assert "WARN" in err
+    assert "ignoring unknown parameter(s): marker_spacng, solve_perod" in err
+    assert "ignoring unknown parameter(s): solve_perod (" in err
+    assert not node2.has_parameter("solve_perod")
+
+
 # ---------------------------------------------------------------------- separate process
 def test_console_script_answers_over_dds(ros: RosHarness) -> None:  # noqa: F811
     exe = shutil.which("rotavg_node", path=str(Path(sys.executable).parent))
@@ -807,7 +837,7 @@ def test_late_subscribers_get_orientations_and_periodic_diagnostics(
 @pytest.mark.parametrize(("args", "fragment"), [
     (["-p", "device:=gpu"], "device must be cpu, cuda, cuda:N or auto"),
     (["-p", "iterations:=0"], "iterations"),
-    (["-p", "sigma:=1"], "sigma"),  # an integer for a double parameter
+    (["-p", "sigma:=3"], "sigma"),  # an integer for a double parameter: 3.0, out of range
 ])
 def test_console_script_refuses_bad_parameters_in_one_line(
     args: list[str], fragment: str, capsys: pytest.CaptureFixture[str],
