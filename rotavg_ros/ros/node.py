@@ -603,7 +603,7 @@ class RotavgNode(Node):
         result = attempt.result
         assert result is not None
         inlier = inlier_residuals_deg(result)
-        median = f"{float(np.median(inlier)):.3g} deg" if inlier.size else "n/a"
+        median = f"{float(np.median(inlier)):.3f} deg" if inlier.size else "n/a"
         self.get_logger().info(
             f"solved {len(result.node_ids)} nodes, {np.asarray(result.residuals_deg).size} "
             f"edges ({self._acc.stats().num_rejected} messages rejected, "
