@@ -6,10 +6,13 @@ talks to it over DDS from an :class:`EdgeClient` in the test process.
 
 from __future__ import annotations
 
+import re
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,12 +24,14 @@ from ros_fixtures import (
     pid_alive,
     process_env,
     ros,  # noqa: F401 - pytest fixture
+    unique_namespace,
     wait_until,
 )
 from std_srvs.srv import Trigger
 
 from rotavg_ros.app.parameters import PARAMETER_TABLE
 from rotavg_ros.core.so3 import random_rotations
+from rotavg_ros.io.g2o import write_g2o
 from rotavg_ros.io.graph_store import load_graph
 
 REPO = Path(__file__).resolve().parents[1]
@@ -193,3 +198,39 @@ def test_help_lists_parameters_and_does_not_start_ros(flag: str) -> None:
     assert "edge_reliability (string, default reliable) [one of: reliable, best_effort" \
         in proc.stdout
     assert proc.stderr == ""
+
+
+@pytest.mark.parametrize("from_file", [False, True], ids=["synthetic", "g2o"])
+def test_example_client_solves_and_prints_every_orientation(
+    tmp_path: Path, from_file: bool,
+) -> None:
+    namespace = unique_namespace()
+    node = NodeProcess(node_command(namespace, NAME, ["solve_period:=3600.0",
+                                                      "iterations:=300", "depths:=[2, 4]"]),
+                       tmp_path)
+    cmd = [sys.executable, str(REPO / "scripts" / "example_client.py"),
+           "--node", f"{namespace}/{NAME}", "--timeout", "60"]
+    frames = [f"cam_{k}" for k in range(12)]
+    if from_file:
+        graph = tmp_path / "graph.g2o"
+        R = random_rotations(6, np.random.default_rng(9))
+        edges = SimpleNamespace(i=[0, 1, 2, 3, 4, 5, 0], j=[1, 2, 3, 4, 5, 0, 3],
+                       R=[R[a] @ R[b].T for a, b in [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5),
+                                                     (5, 0), (0, 3)]], weight=[1.0] * 7)
+        write_g2o(graph, list(range(6)), np.tile(np.eye(3), (6, 1, 1)), edges)
+        cmd.append(str(graph))
+        frames = [str(k) for k in range(6)]
+    try:
+        proc = subprocess.run(cmd, cwd=REPO, env=process_env(), capture_output=True,
+                              text=True, timeout=180)
+    finally:
+        node.proc.send_signal(signal.SIGINT)
+        node.proc.wait(10.0)
+        node.stop()
+    assert proc.returncode == 0, proc.stdout + proc.stderr + node.output
+    out = proc.stdout
+    assert "~/solve: success=True (solved" in out, out
+    for frame in frames:
+        assert re.search(rf"^  {frame}: ([+-]\d\.\d{{6}} ?){{4}}$", out, re.MULTILINE), out
+    assert re.search(r"^diagnostics: OK: \d+ nodes solved$", out, re.MULTILINE), out
+    assert f"  solved_nodes: {len(frames)}" in out
