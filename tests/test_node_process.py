@@ -78,11 +78,13 @@ def start(ros: RosHarness, tmp_path: Path, params: list[str]) -> tuple[  # noqa:
     return node, client
 
 
-def wait_for_child_cpu(node: NodeProcess, seconds: float, timeout: float = 60.0) -> None:
-    """Wait until a child of the node has used ``seconds`` of CPU (the solve is running)."""
+def wait_for_child_cpu(node: NodeProcess, seconds: float, timeout: float = 60.0,
+                       itself: bool = False) -> None:
+    """Wait until a child of the node (or, with ``itself``, the node process) has used
+    ``seconds`` of CPU: the solve is running."""
     def cpu() -> float:
         total = 0.0
-        for pid in node.descendants():
+        for pid in [node.proc.pid] if itself else node.descendants():
             try:
                 fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
             except OSError:
@@ -127,6 +129,32 @@ def test_signal_during_a_long_solve_saves_and_exits_within_2_s(
         "the solver child outlived the node"
     if answer.done():  # an answer may or may not have gone out before the node went away
         assert not answer.result().success
+
+
+def test_signal_during_a_solve_in_the_worker_thread(
+    ros: RosHarness, tmp_path: Path,  # noqa: F811
+) -> None:
+    """solve_in_subprocess:=false: the thread cannot be interrupted, the node exits anyway."""
+    graph_file = tmp_path / "live.g2o"
+    node, client = start(ros, tmp_path, LONG_SOLVE + [f"graph_file:={graph_file}",
+                                                      "solve_in_subprocess:=false"])
+    try:
+        edges = ring_graph(300, seed=6)
+        send_and_wait(client, edges)
+        client.solve_client.call_async(Trigger.Request())
+        wait_for_child_cpu(node, 2.0, itself=True)
+        t0 = time.monotonic()
+        node.proc.send_signal(signal.SIGINT)
+        rc = node.proc.wait(10.0)
+        elapsed = time.monotonic() - t0
+    finally:
+        node.stop()
+    print(f"\nSIGINT during a 300-node solve in the worker thread: exit after {elapsed:.2f} s")
+    assert rc == 0, node.output
+    assert elapsed < EXIT_BOUND_S, node.output
+    assert "abandoned the running solve" in node.stderr
+    assert "error" not in node.stderr.lower(), node.stderr
+    assert len(load_graph(graph_file).measurements) == len(edges)
 
 
 def test_second_signal_exits_at_once(ros: RosHarness, tmp_path: Path) -> None:  # noqa: F811

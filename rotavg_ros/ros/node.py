@@ -481,11 +481,14 @@ class RotavgNode(Node):
         self, request: Trigger.Request, response: Trigger.Response
     ) -> Trigger.Response:
         future = self.request_solve()
-        while not future.done():  # keep ingesting: this callback holds the ingest group
+        # Keep ingesting: this callback holds the ingest group. Stop waiting on stop(): a
+        # solve in the worker thread cannot be interrupted.
+        while not future.done() and not self._abandoned:
             if not self._take_queued(INGEST_BATCH):
                 concurrent.futures.wait([future], timeout=SOLVE_POLL_S)
         try:
-            outcome = future.result()
+            outcome = (future.result() if future.done()
+                       else SolveOutcome(False, "node is shutting down: solve abandoned"))
         except concurrent.futures.CancelledError:
             outcome = SolveOutcome(False, "node is shutting down")
         response.success = outcome.success
