@@ -543,7 +543,7 @@ class RotavgNode(Node):
         try:
             return self._solve_and_publish(force)
         except Exception as exc:  # noqa: BLE001 - never let the worker die silently
-            if self._closing:
+            if self._closing or not self.context.ok():  # e.g. publishing after Ctrl-C
                 return SolveOutcome(False, "node is shutting down")
             self.get_logger().error(f"solve job failed: {exc!r}")
             return SolveOutcome(False, f"internal error: {exc!r}")
