@@ -637,9 +637,9 @@ class RotavgNode(Node):
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self, stamp: Any, stats: AccumulatorStats | None = None) -> None:
         stats = stats if stats is not None else self._acc.stats()
-        level, message, values = diagnostic_values(stats, self._book, self._settings)
+        level, message, values = diagnostic_values(stats, self._book, self._settings,
+                                                   self.incompatible_qos_events)
         with self._status_lock:
-            values["incompatible_qos_events"] = self._incompatible_qos
             previous, self._level = self._level, level
         if level != previous and level >= Level.WARN:
             self.get_logger().warning(f"state {level.name}: {message}")
