@@ -74,7 +74,12 @@ def test_save_is_atomic_fsynced_and_leaves_no_temporary_file(
     path.chmod(0o640)
     synced: list[int] = []
     real_fsync = os.fsync
-    monkeypatch.setattr(graph_store.os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
+
+    def fsync(fd: int) -> None:
+        synced.append(fd)
+        real_fsync(fd)
+
+    monkeypatch.setattr(graph_store.os, "fsync", fsync)
     g = _graph()
     g.add_edge("b", "c", np.eye(3))
     assert save_graph(path, g) == 2

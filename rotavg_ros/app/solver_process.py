@@ -95,7 +95,9 @@ class SubprocessSolver:
         # (terminate_workers); its _processes map is the one it keeps since Python 3.2.
         for proc in list((getattr(pool, "_processes", None) or {}).values()):
             proc.terminate()
-        pool.shutdown(wait=False, cancel_futures=True)
+        # Quick once the child is gone; waiting lets the pool release its queues (else the
+        # resource tracker warns about leaked semaphores at exit).
+        pool.shutdown(wait=True, cancel_futures=True)
 
     def close(self) -> None:
         with self._lock:

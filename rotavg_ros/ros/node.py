@@ -672,8 +672,12 @@ class StopSignals:
         self.signum: int | None = None
         self.received_at = 0.0
         self.node: RotavgNode | None = None
+        self._stop_lock = threading.Lock()
+        self._stopped = False
         for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, self._handle)
+            # A SIGINT ignored by whoever started us (`nohup`, `cmd &` in a script) stays so.
+            if signal.getsignal(signum) is not signal.SIG_IGN:
+                signal.signal(signum, self._handle)
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         if self.event.is_set():  # the second signal: now, without saving
@@ -690,17 +694,28 @@ class StopSignals:
         self.event.set()  # no locks or logging here: the main thread may hold them
 
     def watch(self, node: RotavgNode) -> None:
-        """Start the thread that stops ``node`` once a signal came."""
+        """Start the thread that stops ``node`` once a signal came (the executor thread may
+        be blocked in ``~/solve``, waiting for the solve)."""
         self.node = node
 
         def stop_on_signal() -> None:
             self.event.wait()
+            self.stop_node()
+
+        threading.Thread(target=stop_on_signal, name="rotavg_stop", daemon=True).start()
+
+    def stop_node(self) -> None:
+        """Once, after a signal: log it and :meth:`RotavgNode.stop` the node. Returns when
+        that is done, whichever thread did it."""
+        with self._stop_lock:
+            node = self.node
+            if self._stopped or node is None or not self.event.is_set():
+                return
+            self._stopped = True
             name = signal.Signals(self.signum or signal.SIGINT).name
             node.get_logger().info(f"{name}: stopping")
             if node.stop():
                 node.get_logger().info("abandoned the running solve")
-
-        threading.Thread(target=stop_on_signal, name="rotavg_stop", daemon=True).start()
 
 
 def _user_args(argv: Sequence[str]) -> list[str]:
@@ -748,6 +763,7 @@ def main(args: Sequence[str] | None = None) -> None:
             # Short waits: a signal's Python handler runs only when the wait returns.
             while not signals.event.is_set() and rclpy.ok():
                 executor.spin_once(timeout_sec=0.1)
+            signals.stop_node()  # unless the watcher thread already did
             executor.remove_node(node)
             executor.shutdown(timeout_sec=0.5)
     except ExternalShutdownException:
