@@ -928,3 +928,5 @@ def test_console_script_refuses_bad_parameters_in_one_line(
     err = capsys.readouterr().err
     assert err.startswith("rotavg_node: error:") and fragment in err
     assert "Traceback" not in err
+    # main's own SIGINT / SIGTERM handlers are gone again.
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

@@ -674,10 +674,17 @@ class StopSignals:
         self.node: RotavgNode | None = None
         self._stop_lock = threading.Lock()
         self._stopped = False
+        self._previous: dict[int, Any] = {}
         for signum in (signal.SIGINT, signal.SIGTERM):
             # A SIGINT ignored by whoever started us (`nohup`, `cmd &` in a script) stays so.
             if signal.getsignal(signum) is not signal.SIG_IGN:
-                signal.signal(signum, self._handle)
+                self._previous[signum] = signal.signal(signum, self._handle)
+
+    def restore(self) -> None:
+        """Put the previous handlers back (``main`` called in-process, e.g. by a test)."""
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         if self.event.is_set():  # the second signal: now, without saving
@@ -741,7 +748,7 @@ def main(args: Sequence[str] | None = None) -> None:
     argv = list(args) if args is not None else list(sys.argv)
     user = _user_args(argv)
     if "-h" in user or "--help" in user:
-        sys.stdout.write(parameters_help(os.path.basename(argv[0]) if argv else NODE_NAME))
+        sys.stdout.write(parameters_help())
         sys.exit(0)
     if os.path.exists(FASTDDS_PROFILE):
         os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", FASTDDS_PROFILE)
@@ -774,6 +781,7 @@ def main(args: Sequence[str] | None = None) -> None:
             if node.final_save_ok is False:
                 status = 1
         rclpy.try_shutdown()
+        signals.restore()
         if signals.signum is not None:
             print(f"[{NODE_NAME}] stopped {time.monotonic() - signals.received_at:.2f} s "
                   f"after {signal.Signals(signals.signum).name}", file=sys.stderr, flush=True)
