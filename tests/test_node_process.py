@@ -78,21 +78,45 @@ def start(ros: RosHarness, tmp_path: Path, params: list[str]) -> tuple[  # noqa:
     return node, client
 
 
+def cpu_seconds(pids: list[int]) -> float:
+    """User + system CPU time of ``pids`` (from /proc, clock ticks of 10 ms)."""
+    total = 0.0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / 100.0
+    return total
+
+
+def wait_for_idle(pids: list[int], timeout: float = 60.0) -> None:
+    """Wait until ``pids`` use (almost) no CPU over 0.3 s: the solver child has imported the
+    solver, so the CPU it uses next is the solve's."""
+    def idle() -> bool:
+        before = cpu_seconds(pids)
+        time.sleep(0.3)
+        return cpu_seconds(pids) - before < 0.05
+    assert wait_until(idle, timeout), "the node does not settle"
+
+
 def wait_for_child_cpu(node: NodeProcess, seconds: float, timeout: float = 60.0,
                        itself: bool = False) -> None:
     """Wait until a child of the node (or, with ``itself``, the node process) has used
     ``seconds`` of CPU: the solve is running."""
-    def cpu() -> float:
-        total = 0.0
-        for pid in [node.proc.pid] if itself else node.descendants():
-            try:
-                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            total += (int(fields[11]) + int(fields[12])) / 100.0  # utime + stime, ticks
-        return total
-    start = cpu()
-    assert wait_until(lambda: cpu() - start >= seconds, timeout), "no solve is running"
+    def pids() -> list[int]:
+        return [node.proc.pid] if itself else node.descendants()
+    start = cpu_seconds(pids())
+    assert wait_until(lambda: cpu_seconds(pids()) - start >= seconds, timeout), \
+        "no solve is running"
+
+
+def request_long_solve(node: NodeProcess, client: EdgeClient, itself: bool = False) -> None:
+    """Call ~/solve (without waiting for the answer) once the node is idle, and return when
+    the solve has used 0.5 s of CPU."""
+    wait_for_idle([node.proc.pid] + node.descendants())
+    client.solve_client.call_async(Trigger.Request())
+    wait_for_child_cpu(node, 0.5, itself=itself)
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
@@ -104,8 +128,9 @@ def test_signal_during_a_long_solve_saves_and_exits_within_2_s(
     try:
         edges = ring_graph(300, seed=3)
         send_and_wait(client, edges)
+        wait_for_idle([node.proc.pid] + node.descendants())
         answer = client.solve_client.call_async(Trigger.Request())
-        wait_for_child_cpu(node, 1.0)
+        wait_for_child_cpu(node, 0.5)
         children = node.descendants()
         assert children
         t0 = time.monotonic()
@@ -141,8 +166,7 @@ def test_signal_during_a_solve_in_the_worker_thread(
     try:
         edges = ring_graph(300, seed=6)
         send_and_wait(client, edges)
-        client.solve_client.call_async(Trigger.Request())
-        wait_for_child_cpu(node, 2.0, itself=True)
+        request_long_solve(node, client, itself=True)
         t0 = time.monotonic()
         node.proc.send_signal(signal.SIGINT)
         rc = node.proc.wait(10.0)
@@ -161,8 +185,7 @@ def test_second_signal_exits_at_once(ros: RosHarness, tmp_path: Path) -> None:  
     node, client = start(ros, tmp_path, LONG_SOLVE)
     try:
         send_and_wait(client, ring_graph(300, seed=4))
-        client.solve_client.call_async(Trigger.Request())
-        wait_for_child_cpu(node, 1.0)
+        request_long_solve(node, client)
         children = node.descendants()
         t0 = time.monotonic()
         node.proc.send_signal(signal.SIGINT)
