@@ -18,9 +18,13 @@ from __future__ import annotations
 import itertools
 import os
 import re
+import shutil
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Hashable, Iterable, Iterator, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -265,6 +269,86 @@ class EdgeClient(Node):
             self.orientations.clear()
             self.markers.clear()
             self.diagnostics.clear()
+
+
+# ---------------------------------------------------------------------- node process
+REPO = Path(__file__).resolve().parents[1]
+
+
+def node_command(namespace: str, name: str, params: Sequence[str] = ()) -> list[str]:
+    """``rotavg_node --ros-args -r __node:=name -r __ns:=namespace -p ...`` (the console
+    script of this venv, else ``python -m rotavg_ros.ros.node``)."""
+    exe = shutil.which("rotavg_node", path=str(Path(sys.executable).parent))
+    cmd = [exe] if exe else [sys.executable, "-m", "rotavg_ros.ros.node"]
+    cmd += ["--ros-args", "-r", f"__node:={name}", "-r", f"__ns:={namespace}"]
+    for p in params:
+        cmd += ["-p", p]
+    return cmd
+
+
+def process_env() -> dict[str, str]:
+    """This worker's domain, localhost discovery, unbuffered output, the repo importable."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
+    return env
+
+
+class NodeProcess:
+    """``rotavg_node`` in a child process, stdout and stderr in files (no pipe to fill)."""
+
+    def __init__(self, cmd: Sequence[str], log_dir: Path) -> None:
+        self.out_path = log_dir / "node.out"
+        self.err_path = log_dir / "node.err"
+        with open(self.out_path, "w") as out, open(self.err_path, "w") as err:
+            self.proc = subprocess.Popen(list(cmd), cwd=REPO, env=process_env(),
+                                         stdout=out, stderr=err, text=True)
+
+    @property
+    def stderr(self) -> str:
+        return self.err_path.read_text()
+
+    @property
+    def output(self) -> str:
+        return self.out_path.read_text() + self.err_path.read_text()
+
+    def descendants(self) -> list[int]:
+        """Pids of the process's children and their children (from /proc)."""
+        parents: dict[int, int] = {}
+        for entry in os.listdir("/proc"):
+            if entry.isdigit():
+                try:
+                    stat = Path(f"/proc/{entry}/stat").read_text()
+                except OSError:
+                    continue
+                parents[int(entry)] = int(stat.rsplit(")", 1)[1].split()[1])
+        found, frontier = [], [self.proc.pid]
+        while frontier:
+            parent = frontier.pop()
+            kids = [pid for pid, pp in parents.items() if pp == parent]
+            found += kids
+            frontier += kids
+        return found
+
+    def stop(self) -> None:
+        """Kill it if still running (test teardown)."""
+        if self.proc.poll() is None:
+            for pid in self.descendants():
+                try:
+                    os.kill(pid, 9)
+                except OSError:
+                    pass
+            self.proc.kill()
+            self.proc.wait(10.0)
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie counts as gone)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
 
 
 # ---------------------------------------------------------------------- exact solver

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,8 @@ import pytest
 
 from rotavg_ros.core.so3 import random_rotations
 from rotavg_ros.core.view_graph import ViewGraph
-from rotavg_ros.io.graph_store import load_graph, save_graph
+from rotavg_ros.io import graph_store
+from rotavg_ros.io.graph_store import check_writable, load_graph, save_graph
 
 
 def test_round_trip_keeps_frames_order_weights_and_repeats(tmp_path: Path) -> None:
@@ -56,3 +58,53 @@ def test_foreign_file_is_refused_with_its_name(tmp_path: Path) -> None:
     path.write_text("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n")
     with pytest.raises(ValueError, match="plain.g2o"):
         load_graph(path)
+
+
+def _graph() -> ViewGraph:
+    g = ViewGraph()
+    g.add_edge("a", "b", np.eye(3))
+    return g
+
+
+def test_save_is_atomic_fsynced_and_leaves_no_temporary_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    path = tmp_path / "g.g2o"
+    save_graph(path, _graph())
+    path.chmod(0o640)
+    synced: list[int] = []
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        synced.append(fd)
+        real_fsync(fd)
+
+    monkeypatch.setattr(graph_store.os, "fsync", fsync)
+    g = _graph()
+    g.add_edge("b", "c", np.eye(3))
+    assert save_graph(path, g) == 2
+    assert len(synced) == 2  # the file, then its directory
+    assert (path.stat().st_mode & 0o777) == 0o640  # permissions kept
+    assert os.listdir(tmp_path) == ["g.g2o"]
+    saved = path.read_text()
+
+    def fail(src: object, dst: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(graph_store.os, "replace", fail)
+    with pytest.raises(OSError, match="No space"):
+        save_graph(path, _graph())
+    assert path.read_text() == saved  # the old file is untouched
+    assert os.listdir(tmp_path) == ["g.g2o"]  # the temporary file is gone
+
+
+def test_check_writable_names_a_missing_or_unwritable_directory(tmp_path: Path) -> None:
+    check_writable(tmp_path / "new.g2o")  # need not exist yet
+    with pytest.raises(ValueError, match="does not exist"):
+        check_writable(tmp_path / "missing" / "g.g2o")
+    with pytest.raises(ValueError, match="is a directory"):
+        check_writable(tmp_path)
+    # /proc refuses new files even to root (a chmod'ed folder would not stop root).
+    with pytest.raises(ValueError, match="not writable"):
+        check_writable("/proc/rotavg_graph.g2o")
+    assert os.listdir(tmp_path) == []  # the probe file is gone

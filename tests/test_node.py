@@ -45,6 +45,7 @@ from rotavg_ros.app.session import default_solve
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.so3 import (
+    matrix_to_quat,
     random_rotations,
     rotation_about_axis,
 )
@@ -510,7 +511,11 @@ def test_edge_burst_on_both_topics_is_counted_exactly(executor: str) -> None:
         assert aligned_errors_deg(client.latest_orientations(), gt).max() < 1e-4
 
 
-def test_solver_error_keeps_last_result_and_reports_error(ros: RosHarness) -> None:  # noqa: F811
+def test_solver_error_keeps_last_result_and_reports_error(
+    ros: RosHarness, capfd: pytest.CaptureFixture[str],  # noqa: F811
+) -> None:
+    """... and says so in the log: one INFO line per solve, a WARN when the state turns
+    ERROR, an INFO when it is OK again."""
     gt = chain_gt(4, seed=8)
     fail = threading.Event()
 
@@ -526,6 +531,11 @@ def test_solver_error_keeps_last_result_and_reports_error(ros: RosHarness) -> No
     wait_received(node, 2)
     assert client.solve().success
     assert wait_until(lambda: len(client.orientations) == 3)
+    log = capfd.readouterr().err
+    assert re.search(r"\[INFO\].*solved 3 nodes, 2 edges \(0 messages rejected, 0 edges "
+                     r"filtered, 0 rejected by verification\), 1 component\(s\), depth 0, "
+                     r"[0-9.]+ s, median residual 0.000 deg", log), log
+    assert "state" not in log  # OK from the start: no state change to report
     good = node.last_result
     fail.set()
     client.send_edge("n2", "n3", rel(gt, "n2", "n3"))
@@ -536,6 +546,10 @@ def test_solver_error_keeps_last_result_and_reports_error(ros: RosHarness) -> No
     level, message, values = client.latest_diagnostics()  # type: ignore[misc]
     assert "solver exploded" in message and "solver exploded" in values["last_error"]
     assert values["solves_failed"] == "1"
+    log = capfd.readouterr().err
+    assert re.search(r"\[WARN\].*state ERROR: last solve failed \(RuntimeError: solver "
+                     r"exploded\)", log), log
+    assert "solved" not in log
     time.sleep(0.1)
     assert len(client.orientations) == 3  # nothing new published
     assert node.last_result is good
@@ -547,6 +561,9 @@ def test_solver_error_keeps_last_result_and_reports_error(ros: RosHarness) -> No
     assert client.solve().success
     assert wait_until(lambda: (d := client.latest_diagnostics()) is not None and d[0] == 0)
     assert wait_until(lambda: len(client.latest_orientations()) == 4)
+    log = capfd.readouterr().err
+    assert re.search(r"\[INFO\].*state OK: 4 nodes solved", log), log
+    assert log.count("state ") == 1 and log.count("solved 4 nodes, 4 edges") == 1
 
 
 def test_detached_components_are_solved_published_and_marked(ros: RosHarness) -> None:  # noqa: F811
@@ -572,6 +589,69 @@ def test_detached_components_are_solved_published_and_marked(ros: RosHarness) ->
     namespaces = {(m.ns, m.text) for m in client.markers[-1].markers if m.text}
     assert ("detached_labels", "n3 (anchor)") in namespaces
     assert ("labels", "n0 (anchor)") in namespaces
+
+
+# ---------------------------------------------------------------------- QoS
+BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                         reliability=ReliabilityPolicy.BEST_EFFORT)
+
+
+def test_reliable_edges_do_not_match_a_best_effort_publisher(
+    ros: RosHarness, capfd: pytest.CaptureFixture[str],  # noqa: F811
+) -> None:
+    """Default edge_reliability: a best-effort front end gets an incompatible-QoS WARN and a
+    count in /diagnostics, and none of its edges; a subscriber that asks /diagnostics for
+    more than it offers (transient local) is reported from the publisher side."""
+    node, client = start_pair(ros)
+    target = node.get_fully_qualified_name()
+    front = ros.add(Node("best_effort_front_end", namespace=ros.namespace, context=ros.context))
+    pub = front.create_publisher(TransformStamped, f"{target}/edges", BEST_EFFORT)
+    assert wait_until(lambda: node.incompatible_qos_events >= 1, 10.0)
+    assert pub.get_subscription_count() == 0
+    gt = chain_gt(2, seed=30)
+    msg = TransformStamped()
+    msg.header.frame_id, msg.child_frame_id = "n0", "n1"
+    q = matrix_to_quat(rel(gt, "n0", "n1"))
+    r = msg.transform.rotation
+    r.x, r.y, r.z, r.w = (float(v) for v in q)
+    for _ in range(20):
+        pub.publish(msg)
+        time.sleep(0.01)
+    time.sleep(0.3)
+    assert node.accumulator.stats().received == 0
+    front.create_subscription(DiagnosticArray, "/diagnostics", lambda m: None, QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    assert wait_until(lambda: node.incompatible_qos_events >= 2, 10.0)
+    assert wait_until(lambda: (d := client.latest_diagnostics()) is not None
+                      and int(d[2]["incompatible_qos_events"]) >= 2, 5.0)
+    err = capfd.readouterr().err
+    assert re.search(rf"\[WARN\].*incompatible QoS on {target}/edges: a publisher does not "
+                     r"match \(policy RELIABILITY\).*edge_reliability:=best_effort", err), err
+    assert re.search(r"\[WARN\].*incompatible QoS on /diagnostics: a subscription does not "
+                     r"match \(policy DURABILITY\)", err), err
+
+
+def test_best_effort_edges_match_a_best_effort_publisher(ros: RosHarness) -> None:  # noqa: F811
+    node, client = start_pair(ros, overrides=[Parameter("edge_reliability", value="best_effort")])
+    target = node.get_fully_qualified_name()
+    front = ros.add(Node("best_effort_front_end", namespace=ros.namespace, context=ros.context))
+    pub = front.create_publisher(TransformStamped, f"{target}/edges", BEST_EFFORT)
+    assert wait_until(lambda: pub.get_subscription_count() == 1, 10.0)
+    gt = chain_gt(3, seed=31)
+    for a, b in (("n0", "n1"), ("n1", "n2")):
+        msg = TransformStamped()
+        msg.header.frame_id, msg.child_frame_id = a, b
+        r = msg.transform.rotation
+        r.x, r.y, r.z, r.w = (float(v) for v in matrix_to_quat(rel(gt, a, b)))
+        pub.publish(msg)
+    wait_received(node, 2)  # over localhost nothing is dropped at this rate
+    client.send_edge("n2", "n0", rel(gt, "n2", "n0"))  # the reliable client matches too
+    wait_received(node, 3)
+    assert client.solve().success
+    assert wait_until(lambda: len(client.latest_orientations()) == 3)
+    assert aligned_errors_deg(client.latest_orientations(), gt).max() < 1e-4
+    assert node.incompatible_qos_events == 0
 
 
 # ---------------------------------------------------------------------- parameters
@@ -704,6 +784,36 @@ def test_params_file_via_cli_args(ros: RosHarness, tmp_path: Path) -> None:  # n
     np.testing.assert_allclose(client.latest_orientations()["n1"], np.eye(3), atol=1e-12)
 
 
+def test_integers_for_doubles_accepted_and_misspelled_names_warned(
+    ros: RosHarness, tmp_path: Path, capfd: pytest.CaptureFixture[str],  # noqa: F811
+) -> None:
+    params = tmp_path / "params.yaml"
+    params.write_text(
+        f"{ros.namespace}/rotavg_node:\n"
+        "  ros__parameters:\n"
+        "    sigma: 1\n"
+        "    marker_spacng: 2.0\n"
+    )
+    node = ros.add(RotavgNode(
+        solve_fn=spanning_tree_solve, context=ros.context, namespace=ros.namespace,
+        cli_args=["--ros-args", "--params-file", str(params), "-p", "solve_period:=2",
+                  "-p", "solve_perod:=1", "-p", "iterations:=50"]))
+    for name, want in (("solve_period", 2.0), ("sigma", 1.0)):
+        param = node.get_parameter(name)
+        assert param.type_ == Parameter.Type.DOUBLE and param.value == want, name
+    assert node.get_parameter("iterations").value == 50
+    assert node._settings.solver.filter.sigma == 1.0
+    err = capfd.readouterr().err
+    node2 = ros.add(RotavgNode(
+        solve_fn=spanning_tree_solve, context=ros.context, namespace=ros.namespace,
+        node_name="other", cli_args=["--ros-args", "-p", "solve_perod:=1"]))
+    err += capfd.readouterr().err
+    assert "WARN" in err
+    assert "ignoring unknown parameter(s): marker_spacng, solve_perod" in err
+    assert "ignoring unknown parameter(s): solve_perod (" in err
+    assert not node2.has_parameter("solve_perod")
+
+
 # ---------------------------------------------------------------------- separate process
 def test_console_script_answers_over_dds(ros: RosHarness) -> None:  # noqa: F811
     exe = shutil.which("rotavg_node", path=str(Path(sys.executable).parent))
@@ -807,7 +917,7 @@ def test_late_subscribers_get_orientations_and_periodic_diagnostics(
 @pytest.mark.parametrize(("args", "fragment"), [
     (["-p", "device:=gpu"], "device must be cpu, cuda, cuda:N or auto"),
     (["-p", "iterations:=0"], "iterations"),
-    (["-p", "sigma:=1"], "sigma"),  # an integer for a double parameter
+    (["-p", "sigma:=3"], "sigma"),  # an integer for a double parameter: 3.0, out of range
 ])
 def test_console_script_refuses_bad_parameters_in_one_line(
     args: list[str], fragment: str, capsys: pytest.CaptureFixture[str],
@@ -818,3 +928,5 @@ def test_console_script_refuses_bad_parameters_in_one_line(
     err = capsys.readouterr().err
     assert err.startswith("rotavg_node: error:") and fragment in err
     assert "Traceback" not in err
+    # main's own SIGINT / SIGTERM handlers are gone again.
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -63,5 +65,58 @@ def test_a_dead_child_is_explained_and_replaced() -> None:
         with pytest.raises(RuntimeError, match="died during the solve"):
             solver(g, 0, options)
         assert np.allclose(solver(g, 0, options).rotations, R @ R[0].T, atol=1e-6)
+    finally:
+        solver.close()
+
+
+def test_abort_ends_a_running_solve_at_once_and_the_next_one_gets_a_new_child() -> None:
+    rng = np.random.default_rng(1)
+    n = 60
+    R = random_rotations(n, rng)
+    g = ViewGraph()
+    for a in range(n):
+        for b in range(a + 1, n, 3):
+            g.add_edge(a, b, R[a] @ R[b].T)
+    solver = SubprocessSolver()
+    errors: list[BaseException] = []
+
+    def solve_long() -> None:
+        try:
+            solver(g, 0, SolverOptions.from_flat(mode="dense", iterations=10_000_000,
+                                                 depths=(2,)))
+        except BaseException as exc:  # noqa: BLE001 - recorded for the assertion
+            errors.append(exc)
+
+    worker = threading.Thread(target=solve_long)
+    try:
+        worker.start()
+        deadline = time.monotonic() + 60
+        while not solver.child_pids() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        pids = solver.child_pids()
+        assert pids
+        time.sleep(1.0)  # the child imports the solver and starts
+        t0 = time.monotonic()
+        solver.abort()
+        worker.join(10.0)
+        elapsed = time.monotonic() - t0
+        assert not worker.is_alive() and elapsed < 2.0
+        assert len(errors) == 1 and isinstance(errors[0], RuntimeError)
+        assert solver.child_pids() == []
+        for pid in pids:  # reaped by the pool's manager thread, or at least dying
+            deadline = time.monotonic() + 5
+            while time.monotonic() < deadline:
+                try:
+                    os.kill(pid, 0)
+                except OSError:
+                    break
+                if open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] == "Z":
+                    break
+                time.sleep(0.05)
+            else:
+                pytest.fail(f"solver child {pid} still runs after abort")
+        res = solver(g, 0, SolverOptions.from_flat(mode="sparse"))  # a new child
+        expected = R[np.asarray(res.node_ids, dtype=int)] @ R[0].T
+        assert np.allclose(res.rotations, expected, atol=1e-6)
     finally:
         solver.close()

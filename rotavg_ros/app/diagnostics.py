@@ -30,9 +30,14 @@ def inlier_residuals_deg(result: SolveResult) -> FloatArray:
 
 
 def diagnostic_values(
-    stats: AccumulatorStats, book: SolveBookkeeping, settings: Settings
+    stats: AccumulatorStats, book: SolveBookkeeping, settings: Settings,
+    incompatible_qos_events: int = 0,
 ) -> tuple[Level, str, dict[str, Any]]:
-    """``(level, message, key/values)`` of the node's ``DiagnosticStatus``."""
+    """``(level, message, key/values)`` of the node's ``DiagnosticStatus``.
+
+    ``incompatible_qos_events``: the node's count of incompatible-QoS events on its topics
+    (the replay has no DDS endpoints: 0).
+    """
     result = book.last_result
     values: dict[str, Any] = {
         "nodes": stats.num_nodes,
@@ -89,6 +94,7 @@ def diagnostic_values(
         "solves_failed": book.solves_failed,
         "timer_ticks_skipped_busy": book.skipped_busy,
         "last_error": book.last_error or "none",
+        "incompatible_qos_events": incompatible_qos_events,
     })
     if book.anchor_warning:
         level = max(level, Level.WARN)

@@ -76,6 +76,7 @@ class ParameterSpec:
 
 
 _SOLVER = SolverOptions()
+EDGE_RELIABILITIES = ("reliable", "best_effort")
 
 PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
     ParameterSpec(
@@ -177,8 +178,14 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         range=FloatRange(0.0, 180.0)),
     ParameterSpec(
         "qos_depth", 10000,
-        "KEEP_LAST depth of the reliable edge subscriptions.",
+        "KEEP_LAST depth of the edge subscriptions.",
         range=IntRange(1, 1_000_000), read_only=True),
+    ParameterSpec(
+        "edge_reliability", "reliable",
+        "Reliability of the edge subscriptions: reliable (no edge lost, but a best-effort "
+        "publisher does not match at all: incompatible QoS, logged and counted) or "
+        "best_effort (matches reliable and best-effort publishers; edges can be dropped).",
+        choices=EDGE_RELIABILITIES, read_only=True),
     ParameterSpec(
         "orientations_qos_depth", 10000,
         "KEEP_LAST depth of ~/orientations; a solve publishes one message per node, so keep "
@@ -203,6 +210,9 @@ def validate_parameter(name: str, value: Any) -> str | None:
             RepeatPolicy(value)
         except ValueError:
             return f"repeat_policy must be one of merge, latest, first; got {value!r}"
+    elif name == "edge_reliability":
+        if value not in EDGE_RELIABILITIES:
+            return f"edge_reliability must be reliable or best_effort; got {value!r}"
     elif name == "world_frame":
         if not value or value.startswith("/") or not value.isprintable() or " " in value:
             return f"world_frame must be a non-empty tf2 frame id; got {value!r}"
@@ -328,6 +338,36 @@ def _range_text(spec: ParameterSpec) -> str:
     if spec.read_only:
         parts.append("read-only: set at start")
     return "; ".join(parts)
+
+
+def _type_name(spec: ParameterSpec) -> str:
+    if isinstance(spec.default, list):
+        return "integer array"
+    return {bool: "bool", int: "integer", float: "double", str: "string"}[spec.type]
+
+
+def parameters_help(prog: str = NODE_NAME) -> str:
+    """``rotavg_node --help``: usage and every parameter with its type, default, range or
+    choices, whether it is read-only, and its description."""
+    lines = [
+        f"usage: {prog} [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] ...]",
+        "",
+        "Live rotation averaging: relative rotations in on ~/edges (TransformStamped) and",
+        "~/edges_with_covariance (Odometry), absolute orientations out on ~/orientations.",
+        "An integer is accepted for a double parameter. Read-only parameters are set at start",
+        "only; the others can also be changed at run time.",
+        "",
+        "parameters:",
+    ]
+    for spec in PARAMETER_TABLE:
+        head = f"  {spec.name} ({_type_name(spec)}, default {yaml_value(spec.default)})"
+        extra = _range_text(spec)
+        lines.append(head + (f" [{extra}]" if extra else ""))
+        lines += textwrap.wrap(spec.description, width=92, initial_indent="      ",
+                               subsequent_indent="      ", break_on_hyphens=False)
+    lines += ["", "Example: rotavg_node --ros-args --params-file config/rotavg.yaml "
+              "-p solve_period:=0.5"]
+    return "\n".join(lines) + "\n"
 
 
 def parameters_yaml() -> str:

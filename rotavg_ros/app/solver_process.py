@@ -75,6 +75,30 @@ class SubprocessSolver:
         """Start the child and import the solver there, ahead of the first solve."""
         self._get_pool().submit(_import_solver)
 
+    def child_pids(self) -> list[int]:
+        """Process ids of the current child (none before the first use or after abort).
+
+        Takes no lock: safe to call from a signal handler.
+        """
+        pool = self._pool
+        processes = getattr(pool, "_processes", None) or {}
+        return [proc.pid for proc in list(processes.values()) if proc.pid is not None]
+
+    def abort(self) -> None:
+        """Terminate the child now: a running solve raises ``RuntimeError`` at once and the
+        next solve starts a new child. For a shutdown that must not wait for a long solve."""
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        # ProcessPoolExecutor has no public way to stop a running call before Python 3.14
+        # (terminate_workers); its _processes map is the one it keeps since Python 3.2.
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            proc.terminate()
+        # Quick once the child is gone; waiting lets the pool release its queues (else the
+        # resource tracker warns about leaked semaphores at exit).
+        pool.shutdown(wait=True, cancel_futures=True)
+
     def close(self) -> None:
         with self._lock:
             pool, self._pool = self._pool, None

@@ -262,6 +262,17 @@ def write_g2o(
     lines with zero translation and information ``diag(1, 1, 1, w, w, w)``, so that
     :func:`read_g2o` gives back the same rotations and weights.
     """
+    text = g2o_text(node_ids, rotations_world_to_node, edges)
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(text)
+
+
+def g2o_text(
+    node_ids: Sequence[Hashable],
+    rotations_world_to_node: ArrayLike,
+    edges: EdgeLike | None = None,
+) -> str:
+    """The text :func:`write_g2o` writes."""
     R = np.asarray(rotations_world_to_node, dtype=np.float64)
     ids = [_as_int_id(v) for v in node_ids]
     if R.shape != (len(ids), 3, 3):
@@ -290,8 +301,7 @@ def write_g2o(
             info[[0, 6, 11]] = 1.0
             info[[15, 18, 20]] = w
             out.append(f"{EDGE_TAG} {ids[a]} {ids[b]} 0 0 0 {_fmt(qk)} {_fmt(info)}")
-    with open(path, "w", encoding="utf-8") as fh:
-        fh.write("\n".join(out) + ("\n" if out else ""))
+    return "\n".join(out) + ("\n" if out else "")
 
 
 def _as_int_id(v: Hashable) -> int:

@@ -17,7 +17,9 @@ File format: standard g2o, readable by any g2o tool, plus comment lines for what
 
 from __future__ import annotations
 
+import contextlib
 import os
+import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +31,7 @@ from rotavg_ros.core.measurement import EdgeMeasurement
 from rotavg_ros.core.types import FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
 from rotavg_ros.errors import InputError
-from rotavg_ros.io.g2o import read_g2o, write_g2o
+from rotavg_ros.io.g2o import g2o_text, read_g2o
 
 MAGIC = "# rotavg_ros graph v2"
 _MAGIC_V1 = "# rotavg_ros graph v1"
@@ -59,9 +61,9 @@ def save_graph(
     orientations: Mapping[Any, FloatArray] | None = None, depth: int | None = None,
 ) -> int:
     """Write ``graph`` (and the world-to-node ``orientations`` of the solved nodes, with the
-    ``depth`` of that solve, if any) atomically.
+    ``depth`` of that solve, if any) atomically (see :func:`write_atomic`).
 
-    Returns the number of measurements written.
+    Returns the number of measurements written; raises ``OSError`` if it could not write.
     """
     path = Path(path)
     ids = graph.node_ids
@@ -72,14 +74,65 @@ def save_graph(
             rot[k] = orientations[node]
             solved.append(k)
     i, j, R, w = graph.measurement_arrays()
-    tmp = path.with_name(path.name + ".tmp")
-    write_g2o(tmp, list(range(len(ids))), rot, _Edges(i, j, R, w))
-    body = tmp.read_text()
+    body = g2o_text(list(range(len(ids))), rot, _Edges(i, j, R, w))
     header = ([MAGIC] + [f"# FRAME {k} {node}" for k, node in enumerate(ids)]
               + ["# SOLVED" + "".join(f" {k}" for k in solved), f"# DEPTH {depth or 0}"])
-    tmp.write_text("\n".join(header) + "\n" + body)
-    os.replace(tmp, path)
+    write_atomic(path, "\n".join(header) + "\n" + body)
     return int(i.size)
+
+
+def write_atomic(path: str | os.PathLike[str], text: str) -> None:
+    """Replace ``path`` by a file holding ``text``, all or nothing.
+
+    Writes a temporary file in the same directory, fsyncs it, renames it over ``path``
+    (``os.replace``) and fsyncs the directory: a crash or a full disk leaves the old file
+    or the new one, never a torn one. The temporary file is removed if anything fails.
+    """
+    path = Path(path)
+    try:  # keep the old file's permissions; mkstemp's 0600 otherwise
+        mode = path.stat().st_mode & 0o7777
+    except OSError:
+        mode = 0o644
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        os.fchmod(fd, mode)
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):  # the rename itself; not every OS opens directories
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+
+
+def check_writable(path: str | os.PathLike[str]) -> None:
+    """Raise ``InputError`` unless a file at ``path`` can be written atomically.
+
+    Checks that the directory exists and that a file can be created there (by creating and
+    removing an empty temporary file, which also holds for root and read-only mounts), and
+    that ``path`` is not a directory.
+    """
+    path = Path(path)
+    folder = path.parent
+    if not folder.is_dir():
+        raise InputError(f"{path}: directory {str(folder)!r} does not exist")
+    if path.is_dir():
+        raise InputError(f"{path}: is a directory")
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".probe")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise InputError(f"{path}: directory {str(folder)!r} is not writable "
+                         f"({exc.strerror or exc})") from exc
 
 
 def load_graph(path: str | os.PathLike[str]) -> StoredGraph:
