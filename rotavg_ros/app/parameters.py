@@ -117,6 +117,13 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         "solution) or paper (Algorithm 1 and the DMF only, as published).",
         choices=tuple(PROFILES)),
     ParameterSpec(
+        "odometry", _SOLVER.verify.odometry,
+        "Which edges the default profile's verification trusts as odometry (known inliers, "
+        "never outvoted by loop closures): consecutive (frames adjacent in the order they "
+        "were first seen, e.g. consecutive keyframes), none, or auto (consecutive when they "
+        "chain at least 90% of the frames of a sparse graph; an SfM view graph: none).",
+        choices=("auto", "consecutive", "none")),
+    ParameterSpec(
         "mode", _SOLVER.mode,
         "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "
         "L-BFGS, for chain-like SLAM graphs) or auto (by mean degree).",
@@ -242,6 +249,7 @@ def solver_options_from_parameters(p: Mapping[str, Any]) -> SolverOptions:
     return SolverOptions.for_profile(
         str(p["profile"]),
         mode=str(p["mode"]),
+        odometry=str(p["odometry"]),
         depths=tuple(int(d) for d in p["depths"]),
         iterations=int(p["iterations"]),
         sigma=float(p["sigma"]),

@@ -103,6 +103,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
         "publish_markers": not args.no_markers,
         "profile": args.profile,
         "mode": args.mode,
+        "odometry": args.odometry,
         "warm_start": not args.no_warm_start,
         "depths": list(options.dense.depths),
     })

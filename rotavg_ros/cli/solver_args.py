@@ -64,7 +64,8 @@ def options_from_args(args: argparse.Namespace) -> SolverOptions:
     progress = None if getattr(args, "quiet", False) else say
     return SolverOptions.for_profile(
         getattr(args, "profile", "default"),
-        mode=args.mode, odometry=getattr(args, "odometry", "auto"), depths=depths, iterations=args.iterations, tolerance=args.tolerance,
+        mode=args.mode, odometry=getattr(args, "odometry", "auto"), depths=depths,
+        iterations=args.iterations, tolerance=args.tolerance,
         dtype=args.dtype, lr=args.lr, sigma=args.sigma,
         seed=args.seed, device=args.device,
         threads=None if args.threads == 0 else args.threads,  # 0 = default, as the node's

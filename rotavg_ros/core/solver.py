@@ -220,8 +220,9 @@ class RotationAverager:
         final = out.rotations
         if out.chosen == "robust":
             final = self._refit_dmf(n, i, j, R, w, out)
-        final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
-        final[0] = np.eye(3)
+        if out.chosen == "robust" or out.relocalized:  # (the anchor may have moved)
+            final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
+            final[0] = np.eye(3)
         trusted = int(out.known.sum()) if out.known is not None else 0
         self._say(f"verification: kept the {out.chosen} solution, noise "
                   f"{out.noise.sigma_deg:.2f} deg per axis, {int((~out.inlier).sum())} "

@@ -11,9 +11,9 @@ For each node that explains no more of its edges than it leaves unexplained, eve
 is tried as a hypothesis, scored by the node's share of the truncated L1 cost (each edge's
 residual angle, capped). The node moves to the best one when that lowers the cost by more
 than one capped edge, to the chordal mean of the predictions that agree with the best
-hypothesis (or the hypothesis itself, if that costs less). The cost of every other node's edges is unchanged by the move, so each
-move lowers the total cost over all edges (the verification's choice cost): the sweeps
-descend that cost and stop.
+hypothesis (or the hypothesis itself, if that costs less). The cost of every other node's
+edges is unchanged by the move, so each move lowers the total cost over all edges (the
+verification's choice cost): the sweeps descend that cost and stop.
 
 Conventions: world-to-node ``R_i``, ``R_ij ~= R_i R_j^T``.
 """
