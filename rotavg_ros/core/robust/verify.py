@@ -316,23 +316,28 @@ def verify(
             rot, inlier, noise, t = moved
             relocalized = moves
             cap = _cap(noise, initial_threshold)
+    # The DMF solution's far-off nodes move the same way (each move lowers its cost); it
+    # then rests on the edges it explains, not on the filter's.
+    dmf_moved, dmf_moves = relocalize_nodes(dmf_rotations, i, j, R, w, cap, known)
+    dmf_inlier = dmf_kept | known
+    if dmf_moves and cost(dmf_moved) < cost(dmf_rotations):
+        dmf_rotations = dmf_moved
+        dmf_inlier = (residual_angles(dmf_rotations, i, j, R) * np.sqrt(w) <= cap) | known
+    else:
+        dmf_moves = 0
     # The choice, by the truncated L1 cost over every input edge (Eq. 3 of the paper with
     # each edge's say capped at CHOICE_SIGMAS noise scales, the scale fitted above): a
     # filter that condemned a subtree, or false closures the DMF bent to fit, leave many
     # edges unexplained, each at the cap; outliers cost both solutions the same cap. The
     # re-solve must be clearly better (by ``margin``) to replace the DMF solution, whose L1
     # fit is the more accurate of the two when both explain the data.
-    # The DMF solution's far-off nodes move the same way (each move lowers its cost).
-    dmf_moved, dmf_moves = relocalize_nodes(dmf_rotations, i, j, R, w, cap, known)
-    if dmf_moves and cost(dmf_moved) < cost(dmf_rotations):
-        dmf_rotations = dmf_moved
-    else:
-        dmf_moves = 0
+    # A DMF solution that needed nodes moved has no claim to the margin: it did not explain
+    # the data by itself.
     costs = {"robust": cost(rot), "dmf": cost(dmf_rotations)}
-    if not costs["robust"] < (1.0 - margin) * costs["dmf"]:  # NaN keeps the DMF solution
-        dmf_noise, _, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w, dmf_kept,
+    if not costs["robust"] < (1.0 - (0.0 if dmf_moves else margin)) * costs["dmf"]:
+        dmf_noise, _, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w, dmf_inlier,
                                                 max_threshold, tree)
-        return VerifyOutcome(dmf_rotations, dmf_kept | known, dmf_noise, "dmf", costs, start,
+        return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, start,
                              int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known)
     return VerifyOutcome(rot, inlier, noise, "robust", costs, start,
                          int(np.sum(np.isnan(t) & ~tree)), cap, relocalized, known)
