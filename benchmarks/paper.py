@@ -35,11 +35,12 @@ from benchmarks.datasets import (
     shared_dir_or_say,
 )
 from rotavg_ros.core.metrics import evaluate
-from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.options import PROFILES, SolverOptions
 from rotavg_ros.core.solver import RotationAverager
 
 GRAPHS = ("ellis", *SE_SYNC_GRAPHS)
 OURS = "filtered-DMF (ours)"
+"""Our row with the ``paper`` profile (the reproduction); other profiles are named."""
 ABLATIONS: dict[str, dict[str, Any]] = {
     "(a) w/o edge filter": {"use_filter": False},
     "(b) w/o support count": {"use_support_count": False},
@@ -73,13 +74,16 @@ def _peak_rss_mb() -> float:
 def _run_ours(shared: Path, name: str, overrides: dict[str, Any], q: Any) -> None:
     try:
         bench = load(shared, name)
-        options = SolverOptions.from_flat(**overrides)
+        overrides = dict(overrides)
+        options = SolverOptions.for_profile(overrides.pop("profile", "paper"), **overrides)
         t0 = time.perf_counter()
         result = RotationAverager(options).solve(bench.graph)
         wall = time.perf_counter() - t0
         stats = evaluate(dict(zip(result.node_ids, result.rotations, strict=True)),
                          bench.reference)
         note = f"depth {result.depth}, {result.num_filtered} filtered"
+        if result.verification:
+            note += f"; verification kept {result.verification}"
         q.put(("ok", stats.mean_deg, stats.median_deg, wall, _peak_rss_mb(), note,
                stats.errors.tolist()))
     except Exception as exc:  # reported as a row, the benchmark goes on
@@ -200,7 +204,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--graphs", default=",".join(GRAPHS),
                    help="comma-separated subset of: " + ", ".join(GRAPHS))
     p.add_argument("--peers", action="store_true", help="also run the installed peers")
-    p.add_argument("--ablations", action="store_true", help="Table II ablations on Ellis")
+    p.add_argument("--ablations", action="store_true",
+                   help="Table II ablations on Ellis (paper profile)")
+    p.add_argument("--profiles", default="paper",
+                   help="comma-separated solver profiles to run: paper (Algorithm 1 + DMF, the "
+                   "reproduction) and/or default (the product) (default %(default)s)")
     p.add_argument("--timeout", type=float, default=900.0, help="per run, seconds")
     p.add_argument("--device", default="cpu",
                    help="solver device for our runs: cpu, cuda or auto (peers run on the CPU)")
@@ -215,15 +223,21 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(names) - set(GRAPHS))
     if unknown:
         p.error(f"unknown graphs: {', '.join(unknown)}")
+    profiles = [x.strip() for x in args.profiles.split(",") if x.strip()]
+    bad = sorted(set(profiles) - set(PROFILES))
+    if bad:
+        p.error(f"unknown profiles: {', '.join(bad)} (known: {', '.join(PROFILES)})")
     available = peers.available_peers() if args.peers else {}
     rows: list[Row] = []
     for name in names:
         bench = load(shared, name)
         n, m = bench.graph.num_nodes, bench.graph.edge_arrays().num_edges
         dev = {"device": args.device}
-        runs: list[tuple[str, Any, tuple[Any, ...]]] = [(OURS, _run_ours, (shared, name, dev))]
+        runs: list[tuple[str, Any, tuple[Any, ...]]] = [
+            (OURS if prof == "paper" else f"filtered-DMF (ours, {prof})", _run_ours,
+             (shared, name, {**dev, "profile": prof})) for prof in profiles]
         if name == "ellis" and args.ablations:
-            runs += [(f"ours {k}", _run_ours, (shared, name, {**v, **dev}))
+            runs += [(f"ours {k}", _run_ours, (shared, name, {**v, **dev, "profile": "paper"}))
                      for k, v in ABLATIONS.items()]
         runs += [(peer, _run_peer, (shared, name, peer)) for peer, ok in available.items() if ok]
         for method, target, targs in runs:

@@ -104,3 +104,27 @@ def test_gnc_peer_with_known_inliers_runs() -> None:
     assert r.status == "ok", r.note
     assert f"{case.num_nodes - 1} known inliers" in r.note
     assert r.errors is not None and len(r.errors) == case.num_nodes
+
+
+def test_default_profile_places_every_node_of_a_dense_graph_with_half_outliers() -> None:
+    """Half the edges random: the verification's relocalization leaves no node far off, and
+    the error is the oracle's (our solve on the true edges)."""
+    from rotavg_ros.core.metrics import evaluate
+    from rotavg_ros.core.options import SolverOptions
+    from rotavg_ros.core.solver import average_rotations
+
+    case = rc.dense_case("sfm/dense100/out50", 100, 50, outliers=0.5)
+    assert case.inlier is not None
+    w = np.ones(case.num_edges)
+
+    def node_errors(rot: np.ndarray) -> np.ndarray:
+        return evaluate(dict(enumerate(rot)), dict(enumerate(case.gt))).errors
+
+    default = average_rotations(case.num_nodes, case.i, case.j, case.R, w,
+                                SolverOptions.for_profile("default"))
+    t = case.inlier
+    oracle = average_rotations(case.num_nodes, case.i[t], case.j[t], case.R[t], w[t],
+                               SolverOptions.for_profile("default"))
+    ours, best = node_errors(default.rotations), node_errors(oracle.rotations)
+    assert ours.max() < 5.0
+    assert ours.mean() < 1.25 * best.mean()

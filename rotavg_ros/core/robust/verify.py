@@ -17,8 +17,8 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    per edge, whether it is more likely an inlier or an outlier.
 3. **Re-admit and drop.** Up to ``rounds`` times: re-classify every edge so, and re-solve by
    geodesic least squares on the inliers.
-4. **GNC at the data's threshold.** When ``GNC_SIGMAS`` noise scales are below the
-   initial threshold: GNC-TLS again at that threshold from step 3's solution and from the
+4. **GNC at the data's threshold.** When step 3 found outliers and ``GNC_SIGMAS`` noise
+   scales are below the initial threshold: GNC-TLS again at that threshold from step 3's solution and from the
    odometry chain, the odometry edges
    (``known_inlier``) trusted from here on (known inliers, uncapped in the choice cost);
    step 3 on each; the lowest choice cost is kept.
@@ -283,8 +283,11 @@ def verify(
     # under it; at a few noise scales it cannot, and cutting the odometry to fit them
     # costs the cut edges' full residuals. (At a noise this high, odometry and closures
     # are judged alike, as before.)
+    # (When step 3 found no outlier at all, every edge is consistent at the fitted noise and
+    # there is nothing to judge again.)
     adaptive = GNC_SIGMAS * noise.sigma / np.sqrt(w)
-    if math.isfinite(noise.sigma) and float(np.median(adaptive)) < initial_threshold:
+    if (math.isfinite(noise.sigma) and float(np.median(adaptive)) < initial_threshold
+            and not inlier.all()):
         threshold = np.minimum(adaptive, initial_threshold)
         known = odometry
         inlier |= known
