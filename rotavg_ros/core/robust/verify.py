@@ -18,10 +18,9 @@ takes the solution, not the tree, as the reference, and lets the data set the th
 3. **Re-admit and drop.** Up to ``rounds`` times: re-classify every edge so, and re-solve by
    geodesic least squares on the inliers.
 4. **GNC at the data's threshold.** When step 3 found outliers and ``GNC_SIGMAS`` noise
-   scales are below the initial threshold: GNC-TLS again at that threshold from step 3's solution and from the
-   odometry chain, the odometry edges
-   (``known_inlier``) trusted from here on (known inliers, uncapped in the choice cost);
-   step 3 on each; the lowest choice cost is kept.
+   scales are below the initial threshold: GNC-TLS again at that threshold from step 3's
+   solution and from the odometry chain, the odometry edges (``known_inlier``) trusted from
+   here on (known inliers, uncapped in the choice cost); step 3 on the lower-cost result.
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
    (:mod:`.relocalize`); if that lowers the choice cost, step 3 runs again from there. The
    DMF solution's far-off nodes move the same way.
