@@ -283,10 +283,10 @@ def verify(
     # costs the cut edges' full residuals. (At a noise this high, odometry and closures
     # are judged alike, as before.)
     # (When step 3 found no outlier at all, every edge is consistent at the fitted noise and
-    # there is nothing to judge again.)
+    # there is nothing to judge again; without odometry there is nothing to judge it by.)
     adaptive = GNC_SIGMAS * noise.sigma / np.sqrt(w)
     if (math.isfinite(noise.sigma) and float(np.median(adaptive)) < initial_threshold
-            and not inlier.all()):
+            and not inlier.all() and odometry.any()):
         threshold = np.minimum(adaptive, initial_threshold)
         known = odometry
         inlier |= known
