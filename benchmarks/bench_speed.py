@@ -142,7 +142,7 @@ def run_once(method: str, case: Case, output: Path, timeout: float) -> tuple[flo
     wall = time.perf_counter() - t0
     if proc.returncode != 0 or not output.is_file():
         last = (proc.stderr.strip().splitlines() or ["no output"])[-1]
-        return wall, f"exit {proc.returncode}: {last[:120]}"
+        return wall, f"exit {proc.returncode}: {last[:160]}"
     return wall, None
 
 
@@ -239,6 +239,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--methods", nargs="+", choices=tuple(METHODS), metavar="METHOD",
                    default=list(METHODS), help="subset of: " + "; ".join(METHODS))
     p.add_argument("--timeout", type=float, default=900.0, help="seconds per process")
+    p.add_argument("--markdown", type=Path, metavar="FILE",
+                   help="also write the table here, rewritten after every graph")
     p.add_argument("--pycolmap-child", nargs=2, metavar=("INPUT", "OUTPUT"),
                    help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -281,6 +283,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             say(f"{name}: N={case.num_nodes} E={case.num_edges} ({case.path.name}; scored "
                 f"against the {case.truth_kind})")
             rows += bench_case(case, args.methods, repeats, folder, args.timeout, say)
+            if args.markdown is not None:
+                args.markdown.write_text(format_table(rows) + "\n", encoding="utf-8")
     print(format_table(rows))
     return 0
 
