@@ -2,7 +2,8 @@
 
 Ground truth is world-to-node (``R_i``, ``x_node = R_i x_world``; an edge is
 ``R_ij = R_i R_j^T``); the estimate's g2o vertices are node-to-world and are transposed on
-reading. A ground truth that fits far better transposed draws a warning (:data:`HELP`).
+reading. A ground truth that fits far better transposed draws a warning
+(:data:`rotavg_ros.cli.EVALUATE_HELP`).
 """
 
 from __future__ import annotations
@@ -19,16 +20,6 @@ from rotavg_ros.errors import InputError
 from rotavg_ros.io.g2o import VERTEX_TAG, read_g2o_vertices
 from rotavg_ros.io.onedsfm import open_npz, read_1dsfm_npz, read_rotations_npz
 
-HELP = """\
-Ground-truth convention: rotations R_i are world-to-node (x_node = R_i x_world), the
-convention in which an edge measures R_ij = R_i R_j^T; the 1DSfM R_gt arrays are in it.
-In a .npz, R_ref (or else R_gt) holds them, one row per node id. The estimate's g2o
-vertices are node-to-world (g2o's convention, as 'rotavg solve' and 'rotavg replay
---output-g2o' write them) and are transposed on reading. Errors are per-node geodesic
-angles after the best gauge alignment R_est_i ~ R_gt_i Q. If the ground truth fits far
-better transposed (mean error under half, and 5 degrees or more lower), evaluate warns
-that it looks node-to-world; transpose it before comparing.
-"""
 TRANSPOSED_RATIO = 0.5
 TRANSPOSED_MIN_GAIN_DEG = 5.0
 

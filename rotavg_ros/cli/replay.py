@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from rotavg_ros.app.parameters import NODE_NAME, PARAMETER_SPECS, settings_from_parameters
+from rotavg_ros.cli import REPLAY_HELP
 from rotavg_ros.cli.output import say
 from rotavg_ros.cli.solver_args import add_solver_arguments, options_from_args
 from rotavg_ros.errors import InputError
@@ -19,9 +20,9 @@ from rotavg_ros.replay.engine import run_replay
 
 
 def register(subparsers: Any) -> argparse.ArgumentParser:
-    """Add ``replay`` to the ``rotavg`` command line (called by :mod:`rotavg_ros.cli.main`)."""
+    """Add ``replay`` to the ``rotavg`` command line (:func:`rotavg_ros.cli.build_parser`)."""
     p = subparsers.add_parser(
-        "replay", help="replay a rosbag2 MCAP bag through the node's pipeline, offline",
+        "replay", help=REPLAY_HELP,
         description="Replay a rosbag2 MCAP bag (directory or lone .mcap) through the same "
         "adapters, accumulator and solver as rotavg_node, without ROS. Exit status: 0 ok, "
         "1 nothing usable in the bag, 2 bad input, 3 the last solve failed.")
