@@ -231,8 +231,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog=f"python -m benchmarks.{PROG}", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--graphs", nargs="+", choices=ALL_GRAPHS, metavar="GRAPH",
-                   help=f"subset of {', '.join(ALL_GRAPHS)} (default: "
-                   f"{' '.join(DEFAULT_GRAPHS)}; --quick: {' '.join(QUICK_GRAPHS)})")
+                   help=(f"subset of {', '.join(ALL_GRAPHS)} (default: "
+                         f"{' '.join(DEFAULT_GRAPHS)}; --quick: {' '.join(QUICK_GRAPHS)})"
+                         ).replace("%", "%%"))
     p.add_argument("--repeats", type=int, default=3, help="runs per (graph, method); the "
                    "median is reported (default %(default)s)")
     p.add_argument("--quick", action="store_true", help="one run each, on the small graphs")

@@ -55,3 +55,11 @@ def test_quick_run_on_a_tiny_generated_graph(capsys: pytest.CaptureFixture[str])
         assert r[1:3] == ["60", "388"] and r[5] == "1"
         assert float(r[4]) > 0 and float(r[8].rstrip(" |")) < 2.0  # median error, degrees
     assert rows[-1][6] == "1.00"
+
+
+def test_help_prints_and_exits_zero(capsys: pytest.CaptureFixture[str]) -> None:
+    """The graph names hold '%' (argparse's format character): --help must still print."""
+    with pytest.raises(SystemExit) as exc:
+        bench_speed.parse_args(["--help"])
+    assert exc.value.code == 0
+    assert "ellis+15%" in capsys.readouterr().out
