@@ -78,8 +78,12 @@ say "starting $NODE_BIN"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( 100 + RANDOM % 100 ))}"
 node_log="$WS/node.log"
+# Job control on while it starts: a script's background job otherwise starts with SIGINT
+# ignored, and rotavg_node keeps a SIGINT that its parent ignores ignored (as `nohup` wants).
+set -m
 "$NODE_BIN" >"$node_log" 2>&1 &
 NODE_PID=$!
+set +m
 up=""
 for _ in $(seq 1 $(( STARTUP_TIMEOUT_S * 10 ))); do
   if grep -q "\[rotavg_node\]" "$node_log"; then up=1; break; fi
