@@ -2,6 +2,25 @@
 
 Conventions throughout: ``R_i`` is the world-to-node rotation of node i and an edge
 ``(i, j)`` carries ``R_ij ~= R_i R_j^T`` (the orientation of frame j expressed in frame i).
+
+Importing the package before numpy makes numpy's and scipy's OpenBLAS single-threaded
+(unless ``OPENBLAS_NUM_THREADS`` is set): see :data:`BLAS_THREADS_VARIABLES`.
 """
 
+import os as _os
+import sys as _sys
+
 __version__ = "0.1.0"
+
+BLAS_THREADS_VARIABLES = ("OPENBLAS_NUM_THREADS",)
+"""Set to 1 when this package is imported before numpy (every ``rotavg`` and
+``rotavg_node`` process, and the node's solver child). The solver's numpy and scipy work is
+many small products and factorizations; a multi-threaded BLAS spin-waits between them and
+collapses when another process shares the CPU: the verification of Ellis Island took 23.9 s
+with OpenBLAS's default 2 threads beside one busy process, 2.5 s with one (2-core machine).
+A process that imports numpy first keeps its own setting. (Not ``MKL_NUM_THREADS``: torch
+reads it for its own thread count, which the solver sets per fit.)"""
+
+if "numpy" not in _sys.modules:
+    for _name in BLAS_THREADS_VARIABLES:
+        _os.environ.setdefault(_name, "1")

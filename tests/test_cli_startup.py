@@ -76,3 +76,20 @@ def test_top_level_help_lists_replay(capsys: pytest.CaptureFixture[str]) -> None
     with pytest.raises(SystemExit):
         main(["--help"])
     assert REPLAY_HELP in " ".join(capsys.readouterr().out.split())
+
+
+BLAS_CHILD = "import os, rotavg_ros, numpy; print(os.environ.get('OPENBLAS_NUM_THREADS'))"
+
+
+@pytest.mark.parametrize(("given", "expected"), [(None, "1"), ("2", "2")])
+def test_importing_the_package_first_makes_blas_single_threaded_unless_set(
+        given: str | None, expected: str) -> None:
+    """Every rotavg process imports the package before numpy: OpenBLAS then runs one thread
+    (a multi-threaded BLAS collapses when the CPU is shared); a user's own setting stays."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    env["PYTHONPATH"] = str(REPO_ROOT)
+    proc = subprocess.run([sys.executable, "-c", BLAS_CHILD], cwd=REPO_ROOT, env=env,
+                          capture_output=True, text=True, timeout=120, check=True)
+    assert proc.stdout.strip() == expected

@@ -9,8 +9,12 @@ import pytest
 
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.robust import gauss_newton
 from rotavg_ros.core.robust.gauss_newton import (
+    Factor,
+    _assemble,
     _normal_matrix,
+    jacobi_pcg,
     prediction_variance,
     refine_least_squares,
     residual_angles,
@@ -100,6 +104,36 @@ def test_prediction_variance_matches_the_inverse() -> None:
     np.testing.assert_allclose(probed, exact, rtol=0.15)
     # Leverages of the fitted edges add up to the degrees of freedom.
     assert float(np.sum(w * solved)) == pytest.approx(free.size / 3.0, rel=1e-9)
+
+
+def test_normal_matrix_solvers_agree(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Dense Cholesky, Jacobi-preconditioned CG (a large well-connected graph) and SuperLU
+    (a sparse one) solve the same normal equations; a CG that cannot converge falls back
+    to SuperLU."""
+    rng = np.random.default_rng(3)
+    n = 120
+    rot = random_rotations(n, rng)
+    ii, jj = np.triu_indices(n, 1)
+    keep = rng.random(ii.size) < 0.2  # mean degree about 24
+    i, j = ii[keep], jj[keep]
+    Hf, _, free = _assemble(rot, i, j, 0.5 + rng.random(i.size))
+    b = rng.normal(size=(free.size, 4))
+    reference = np.linalg.solve(Hf.toarray(), b)
+    dense = Factor(Hf, free)
+    monkeypatch.setattr(gauss_newton, "DENSE_MAX", 10)  # as if the graph were large
+    iterative = Factor(Hf, free)
+    assert not iterative.sparse  # CG, no factorization
+    np.testing.assert_allclose(dense.solve(b), reference, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(iterative.solve(b), reference, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(iterative.solve(b[:, 0]), reference[:, 0], rtol=1e-7,
+                               atol=1e-9)
+    assert jacobi_pcg(Hf, b, 1.0 / Hf.diagonal(), 1e-10, 2) is None
+    monkeypatch.setattr(gauss_newton, "PCG_MAX_ITERATIONS", 2)  # CG gives up: SuperLU
+    fallback = Factor(Hf, free)
+    np.testing.assert_allclose(fallback.solve(b), reference, rtol=1e-8, atol=1e-10)
+    assert fallback.sparse
+    monkeypatch.setattr(gauss_newton, "ITERATIVE_MIN_DEGREE", 1000.0)  # not connected enough
+    assert Factor(Hf, free).sparse
 
 
 def test_noise_fit_recovers_scale_and_outlier_fraction() -> None:
