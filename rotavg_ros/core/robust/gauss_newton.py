@@ -14,6 +14,7 @@ dense Cholesky, Jacobi-preconditioned conjugate gradients or SuperLU.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -229,7 +230,7 @@ CG_MAX_ITERATIONS = 30
 
 def prediction_variance(
     rot: FloatArray, i: IntArray, j: IntArray, w: FloatArray, probes: int = 32,
-    seed: int = 0, exact: BoolArray | None = None,
+    seed: int = 0, exact: BoolArray | Callable[[FloatArray], BoolArray] | None = None,
 ) -> FloatArray:
     """Per edge, ``q_e = tr(A_e H^-1 A_e^T) / 3`` for the least-squares fit with weights
     ``w`` (``w_e = 0``: not in the fit), estimated with random probes.
@@ -239,7 +240,8 @@ def prediction_variance(
     predicted with variance ``1 / w_e + q_e``. Probes ``z = H^-1 A^T W^(1/2) g`` with
     ``g ~ N(0, I)`` have covariance ``H^-1``, so ``E |A_e z|^2 = tr(A_e H^-1 A_e^T)``
     (about 15% relative error with 32 probes). Edges marked in ``exact`` get ``q_e`` from
-    three solves each instead (needed where the leverage is close to 1).
+    three solves each instead (needed where the leverage is close to 1); ``exact`` may be a
+    function of the probe estimates that returns the mask (one factorization serves both).
     """
     n = rot.shape[0]
     q = np.zeros(i.size)
@@ -259,6 +261,8 @@ def prediction_variance(
     Pt = rot[j] @ np.swapaxes(rot[i], 1, 2)
     Az = Pt @ z3[i] - z3[j]
     q = np.mean(np.sum(Az * Az, axis=1), axis=1) / 3.0
+    if callable(exact):
+        exact = exact(q)
     if exact is not None and exact.any():
         q[exact] = _exact_prediction_variance(lu, free, n, Pt[exact], i[exact], j[exact])
     return q

@@ -154,15 +154,19 @@ def standardized_residuals(
     in advance (a spanning tree's), which are not worth an exact leverage.
     """
     r = residual_angles(rot, i, j, R)
-    q = prediction_variance(rot, i, j, w * fit, seed=seed)
-    # The probe estimate of h has a spread of about 0.14 h: where h > 0.5 it is too rough
-    # for 1 - h. Solve exactly for up to EXACT_LEVERAGE_EDGES such edges off the tree (loop
-    # closures, highest first); the others (tree edges) say nothing about the noise.
-    high = np.flatnonzero(fit & (w * q > 0.5) & (True if tree is None else ~tree))
     exact = np.zeros(i.size, bool)
-    exact[high[np.argsort(-(w * q)[high])][:EXACT_LEVERAGE_EDGES]] = True
-    if exact.any():
-        q = prediction_variance(rot, i, j, w * fit, seed=seed, exact=exact)
+
+    def high_leverage(q_probed: FloatArray) -> BoolArray:
+        # The probe estimate of h has a spread of about 0.14 h: where h > 0.5 it is too
+        # rough for 1 - h. Solve exactly for up to EXACT_LEVERAGE_EDGES such edges off the
+        # tree (loop closures, highest first); the others (tree edges) say nothing about
+        # the noise.
+        h = w * q_probed
+        high = np.flatnonzero(fit & (h > 0.5) & (True if tree is None else ~tree))
+        exact[high[np.argsort(-h[high])][:EXACT_LEVERAGE_EDGES]] = True
+        return exact
+
+    q = prediction_variance(rot, i, j, w * fit, seed=seed, exact=high_leverage)
     h = w * q
     var = np.where(fit, (1.0 - h) / w, 1.0 / w + q)
     scale = np.sqrt(np.maximum(var, 1e-12))
