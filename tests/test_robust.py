@@ -124,9 +124,9 @@ def test_normal_matrix_solvers_agree(monkeypatch: pytest.MonkeyPatch) -> None:
     iterative = Factor(Hf, free)
     assert not iterative.sparse  # CG, no factorization
     np.testing.assert_allclose(dense.solve(b), reference, rtol=1e-8, atol=1e-10)
-    np.testing.assert_allclose(iterative.solve(b), reference, rtol=1e-7, atol=1e-9)
-    np.testing.assert_allclose(iterative.solve(b[:, 0]), reference[:, 0], rtol=1e-7,
-                               atol=1e-9)
+    np.testing.assert_allclose(iterative.solve(b), reference, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(iterative.solve(b[:, 0]), reference[:, 0], rtol=1e-4,
+                               atol=1e-6)
     assert jacobi_pcg(Hf, b, 1.0 / Hf.diagonal(), 1e-10, 2) is None
     monkeypatch.setattr(gauss_newton, "PCG_MAX_ITERATIONS", 2)  # CG gives up: SuperLU
     fallback = Factor(Hf, free)

@@ -138,7 +138,7 @@ CG converges in a few dozen products with the sparse matrix. Chains and pose gra
 PCG_MAX_ITERATIONS = 300
 """Conjugate-gradient iterations of :func:`jacobi_pcg` before the solve falls back to
 SuperLU (2,000 nodes at mean degree 20 need 25-30)."""
-PCG_TOLERANCE = 1e-8
+PCG_TOLERANCE = 1e-6
 """Relative residual at which :func:`jacobi_pcg` stops (per column)."""
 
 
