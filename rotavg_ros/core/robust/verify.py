@@ -92,6 +92,10 @@ class VerifyOutcome:
     """Node moves of :func:`~.relocalize.relocalize_nodes` in the kept re-solve."""
     known: BoolArray | None = None
     """The trusted (odometry) edges: known inliers of the re-solve, uncapped in ``costs``."""
+    classified: BoolArray | None = None
+    """Edges the noise model fitted to the kept solution's own residuals classifies as
+    inliers (with the trusted ones): for ``dmf``, the filter's edges minus those the DMF
+    solution itself shows to be outliers."""
 
 
 def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> BoolArray:
@@ -341,9 +345,10 @@ def verify(
     # the data by itself.
     costs = {"robust": cost(rot), "dmf": cost(dmf_rotations)}
     if not costs["robust"] < (1.0 - (0.0 if dmf_moves else margin)) * costs["dmf"]:
-        dmf_noise, _, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w, dmf_inlier,
-                                                max_threshold, tree)
+        dmf_noise, classified, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w,
+                                                         dmf_inlier, max_threshold, tree)
         return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, start,
-                             int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known)
+                             int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known,
+                             classified | known)
     return VerifyOutcome(rot, inlier, noise, "robust", costs, start,
-                         int(np.sum(np.isnan(t) & ~tree)), cap, relocalized, known)
+                         int(np.sum(np.isnan(t) & ~tree)), cap, relocalized, known, inlier)
