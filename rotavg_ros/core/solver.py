@@ -348,7 +348,7 @@ class RotationAverager:
         torch.set_num_threads(intra)
         try:
             if workers == 1:
-                done = {d: run(d) for d in order}
+                done = {d: run(d) for d in (order if race is not None else depths)}
                 return {d: done[d] for d in depths}
             with ThreadPoolExecutor(max_workers=workers) as pool:
                 futures = {d: pool.submit(run, d) for d in order}
