@@ -9,6 +9,8 @@ import pytest
 import torch
 
 from rotavg_ros.core.dmf import FitSpec, factor_shapes, fit_symmetric
+from rotavg_ros.core.dmf.dense import _residuals
+from rotavg_ros.core.dmf.residuals import DenseResiduals, GatherResiduals
 from rotavg_ros.core.optim.factor_chain import FactorChain
 from rotavg_ros.core.options import DenseFitOptions
 from rotavg_ros.core.so3 import random_rotations
@@ -74,3 +76,69 @@ def test_float32_fit_matches_float64() -> None:
     f64 = fit_symmetric(10, i, j, Rij, w, DenseFitOptions(**base, dtype="float64"), spec)
     assert f32.H.dtype == np.float64  # results are returned as float64 either way
     assert _error_deg(f32.H, R) < 0.01 and _error_deg(f64.H, R) < 0.01
+
+
+def _reference_loss(h_t: torch.Tensor, i: np.ndarray, j: np.ndarray, R: np.ndarray,
+                    w: torch.Tensor, diag: float) -> torch.Tensor:
+    """The loss written out (float64, autograd): blocks H_i are rows 3i..3i+2 of H^T^T."""
+    H = h_t.T.reshape(-1, 3, 3)
+    pred = H[i] @ H[j].transpose(1, 2)
+    own = H @ H.transpose(1, 2)
+    return ((w[:, None, None] * (pred - torch.as_tensor(R)).abs()).sum()
+            + diag * (own - torch.eye(3, dtype=h_t.dtype)).abs().sum())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_dense_residuals_match_the_gathered_blocks(dtype: torch.dtype) -> None:
+    """The whole-H H^T evaluation: same loss, gradient and edge residual norms as the
+    gather (to rounding), both as the loss written out, also after a reweighting."""
+    rng = np.random.default_rng(4)
+    n = 9
+    i, j = np.triu_indices(n, 1)
+    keep = rng.random(i.size) < 0.6
+    i, j = i[keep], j[keep]
+    R = random_rotations(i.size, rng)
+    h64 = torch.as_tensor(rng.normal(size=(3, 3 * n)))
+    h_t = h64.to(dtype)
+    w = torch.as_tensor(np.linspace(0.5, 2.0, i.size))
+    runs = []
+    for kind in (GatherResiduals, DenseResiduals):
+        weights = w.to(dtype, copy=True)
+        res = kind(n, i, j, R, weights, diagonal_weight=1.5)
+        first = (*res.gradient(h_t), res.edge_norms(), res.loss())
+        weights[::2] *= 0.25  # a reweighting, in place
+        res.reweighted()
+        runs.append((first, (*res.gradient(h_t), res.edge_norms(), res.loss())))
+    tol = 2e-5 if dtype == torch.float32 else 1e-7
+    scales = (torch.ones(i.size, dtype=torch.float64),
+              torch.where(torch.arange(i.size) % 2 == 0, 0.25, 1.0).double())
+    for k, scale in enumerate(scales):
+        ref = h64.clone().requires_grad_(True)
+        loss = _reference_loss(ref, i, j, R, w * scale, 1.5)
+        loss.backward()
+        assert ref.grad is not None
+        for Hn, grad, norms, value in (runs[0][k], runs[1][k]):
+            assert value == pytest.approx(float(loss.detach()), rel=1e-5)
+            torch.testing.assert_close(grad, ref.grad.to(dtype), rtol=tol, atol=tol)
+            torch.testing.assert_close(Hn, runs[0][k][0])
+            torch.testing.assert_close(norms, runs[0][k][2], rtol=tol, atol=tol)
+    assert runs[0][0][3] != pytest.approx(runs[0][1][3])
+
+
+def test_dense_fit_switches_by_density_and_matches_the_gather() -> None:
+    R, i, j, Rij = _clean_problem(12, 5)
+    spec = FitSpec(depth=2, hidden_width=36, seed=1, device="cpu", cuda_graph=False)
+    fits = [fit_symmetric(12, i, j, Rij, np.ones(i.size),
+                          DenseFitOptions(dtype="float64", iterations=600,
+                                          dense_product_density=density), spec)
+            for density in (None, 0.5)]
+    assert max(_error_deg(f.H, R) for f in fits) < 0.5
+    np.testing.assert_allclose(fits[1].H, fits[0].H, atol=1e-6)
+    w = torch.ones(i.size, dtype=torch.float64)
+    for density, nodes, kind in ((0.5, 300, DenseResiduals), (None, 300, GatherResiduals),
+                                 (1.0, 300, DenseResiduals), (0.5, 11, GatherResiduals)):
+        s = DenseFitOptions(dense_product_density=density, dense_product_max_nodes=nodes)
+        assert isinstance(_residuals(12, i, j, Rij, w, s), kind)
+    sparse = DenseFitOptions(dense_product_density=0.5)  # a fifth of the pairs observed
+    assert isinstance(_residuals(12, i[::5], j[::5], Rij[::5], w[::5], sparse),
+                      GatherResiduals)

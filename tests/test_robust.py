@@ -239,7 +239,7 @@ def _grid(side: int, false_fraction: float, seed: int
     i = np.array([a for a, _ in sorted(pairs)])
     j = np.array([b for _, b in sorted(pairs)])
     R = _noisy(_relative(truth, i, j), 1.0, rng)
-    false = set()
+    false: set[tuple[int, int]] = set()
     while len(false) < int(round(false_fraction * i.size)):
         a, b = sorted(int(x) for x in rng.integers(0, n, 2))
         if b - a > side and (a, b) not in pairs:

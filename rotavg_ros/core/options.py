@@ -55,6 +55,26 @@ class DenseFitOptions:
 
     depths: tuple[int, ...] = (2, 4, 6, 8)
     """Candidate depths d (even); H has d/2 factors. The best by the Eq. 3 cost wins."""
+    prune_ratio: float | None = 0.3
+    """Candidate race (beyond the paper; :mod:`rotavg_ros.core.dmf.race`): from iteration
+    ``prune_after`` on, every ``prune_every`` iterations, a cold dense fit stops when its
+    Eq. 3 cost is above ``1 + prune_ratio`` times the cost of the shallowest candidate (the
+    pace-setter) at the same iteration (its final cost once it has ended); a stopped
+    candidate is never chosen. None: every candidate runs to the end (profile ``paper``).
+    Evidence (``python -m benchmarks.depth_race``), the 9 dense cases of the regime
+    benchmark (10 choices between depths, with the verification's refits; costs every 25
+    iterations): from iteration 400 on, the depth finally chosen was at most 14.5% above
+    depth 2 (before 400, up to 58%: from a near-zero start deeper factors learn more
+    slowly), so 0.3 leaves a 2x margin. It stops depth 8 at iteration 400 on Ellis Island
+    (42% above depth 2; a quarter less DMF CPU time) and with 30% false edges (270%
+    above), and changes no choice. Deep candidates often win by < 0.2% at the end
+    (synthetic graphs), so a rule that stops them earlier or closer is not safe."""
+    prune_after: int = 400
+    """First checkpoint of the candidate race (a multiple of ``check_every``)."""
+    prune_every: int = 100
+    """Checkpoint spacing of the candidate race (a multiple of ``check_every``); each
+    checkpoint costs one Eq. 3 evaluation per running candidate (about 4 ms for 20k
+    edges)."""
     iterations: int = 1000
     """Adam iterations at most (fewer when ``tolerance`` stops the fit)."""
     tolerance: float = 5e-4
@@ -62,6 +82,23 @@ class DenseFitOptions:
     fit counts as converged (``patience`` times in a row, after the warm-up); 0 = run every
     iteration. On Ellis Island the depth-2 fit stops after about 600 of 1000 iterations
     (mean error +0.007 deg); deeper fits converge later and mostly run to the end."""
+    dense_product_density: float | None = None
+    """CPU: evaluate the loss and its gradient from the whole ``H H^T`` (two 3N x 3N
+    matrix products) instead of gathering the observed blocks, when at least this fraction
+    of the node pairs carries an edge and there are at most ``dense_product_max_nodes``
+    nodes; None: always gather. The same loss and gradient to float32 rounding, and
+    faster on small dense graphs (depth 2, one thread, CPU time per iteration dense /
+    gathered): 100 nodes 0.39 at 53% of the pairs observed, 0.45 at 32%; 227 (Ellis
+    Island) 0.47 at 78%, 0.54 at 54% (filtered), 0.74 at 39%, about 1 at 31%, 1.10 at 23%;
+    300 nodes 0.59 at 51%, 0.81 at 34%; 400 nodes 0.8-1.0 at 50%, 1.17 at 30%, 4.1 at 10%;
+    1000 nodes 2.3 at 50%. So 0.35 would suit; it cut the DMF CPU time of an Ellis Island
+    solve by 14%. Off by default: the rounding differences grow over a fit enough to flip
+    near-tied depth choices (Ellis + 15% false edges, paper profile: depth 6 -> 2, mean
+    error 3.915 -> 4.315 deg; Ellis Island 2.274/0.397 -> 2.276/0.396 deg), i.e. it
+    changes recorded results the way a different seed does."""
+    dense_product_max_nodes: int = 300
+    """Largest graph for ``dense_product_density``: the 3N x 3N matrices outgrow the CPU
+    caches (at 400 nodes the two ways cost the same at 50% observed)."""
     dtype: str = "float32"
     """Torch dtype of the Adam fit (``float32`` or ``float64``). float32 is about twice as
     fast (the full-width factors are memory-bound) and gave the same Ellis Island errors to
@@ -190,10 +227,11 @@ _GROUPS: dict[str, type] = {
 
 PROFILES: dict[str, dict[str, Any]] = {
     "default": {},
-    "paper": {"verify": False},
+    "paper": {"verify": False, "prune_ratio": None},
 }
 """Named option sets by flat name. ``paper`` is Algorithm 1 and the DMF of the paper to the
-letter (with our documented tie rule); ``default`` adds the verification stage."""
+letter (with our documented tie rule): every depth candidate runs to the end; ``default``
+adds the verification stage and stops depth candidates that have clearly lost."""
 
 
 @dataclass
@@ -288,7 +326,17 @@ def _problems(o: Mapping[str, Any]) -> Iterator[str]:
                  "sparse_inner_iterations", "verify_rounds"):
         if not _is_int(o[name]) or o[name] < 1:
             yield f"{name} must be an integer >= 1, got {o[name]!r}"
-    for name in ("warmup", "max_full_width_nodes"):
+    if o["prune_ratio"] is not None and not _positive(o["prune_ratio"]):
+        yield f"prune_ratio must be None or a finite number > 0, got {o['prune_ratio']!r}"
+    check, every, after = o["check_every"], o["prune_every"], o["prune_after"]
+    if not _is_int(check) or check < 1:
+        yield f"check_every must be an integer >= 1, got {check!r}"
+    elif not _is_int(every) or every < 1 or every % check:
+        yield f"prune_every must be a positive multiple of check_every ({check}), got {every!r}"
+    elif not _is_int(after) or after < 0 or after % check:
+        yield (f"prune_after must be an integer >= 0 and a multiple of check_every ({check}), "
+               f"got {after!r}")
+    for name in ("warmup", "max_full_width_nodes", "dense_product_max_nodes"):
         if not _is_int(o[name]) or o[name] < 0:
             yield f"{name} must be an integer >= 0, got {o[name]!r}"
     for name in ("lr", "warm_lr", "init_scale", "sigma", "huber_factor",
@@ -305,6 +353,10 @@ def _problems(o: Mapping[str, Any]) -> Iterator[str]:
             yield f"{name} must be a finite number >= 0, got {value!r}"
     if not (_is_number(o["warm_min_known"]) and 0.0 <= o["warm_min_known"] <= 1.0):
         yield f"warm_min_known must be in [0, 1], got {o['warm_min_known']!r}"
+    if o["dense_product_density"] is not None and not (
+            _is_number(o["dense_product_density"]) and 0.0 <= o["dense_product_density"] <= 1.0):
+        yield (f"dense_product_density must be None or in [0, 1], "
+               f"got {o['dense_product_density']!r}")
     if o["dtype"] not in ("float32", "float64"):
         yield f"dtype must be float32 or float64, got {o['dtype']!r}"
     if o["hidden_width"] is not None and (not _is_int(o["hidden_width"])

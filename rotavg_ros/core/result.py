@@ -61,6 +61,10 @@ class SolveResult:
     """Which solution the verification kept (largest component): ``dmf`` (the filtered
     DMF), ``robust`` (its re-solve on every edge), ``failed`` (the verification raised;
     the DMF solution stands) or empty (``paper`` profile)."""
+    pruned_depths: tuple[int, ...] = ()
+    """Depth candidates the candidate race stopped early (largest component; option
+    ``prune_ratio``): never chosen; their ``cost_by_depth`` is of the unfinished fit and
+    their ``iterations_by_depth`` where they stopped."""
 
 
 def components_warning(result: SolveResult) -> str | None:

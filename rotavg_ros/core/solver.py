@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Hashable, Mapping
+from collections.abc import Callable, Hashable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any
@@ -22,9 +22,16 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from rotavg_ros.core.chordal_init import chordal_rotations
-from rotavg_ros.core.dmf import DMFFit, FitSpec, fit_symmetric, fit_symmetric_lbfgs, fit_vanilla
+from rotavg_ros.core.dmf import (
+    CandidateRace,
+    DMFFit,
+    FitSpec,
+    fit_symmetric,
+    fit_symmetric_lbfgs,
+    fit_vanilla,
+)
 from rotavg_ros.core.filter.edge_filter import filter_edges
-from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.verify import (
     odometry_edges,
@@ -59,6 +66,8 @@ class ComponentSolution:
     """Node moves of the verification's relocalization (kept solution)."""
     trusted: int = 0
     """Odometry edges the verification trusted as inliers."""
+    pruned_depths: tuple[int, ...] = ()
+    """Depth candidates the candidate race stopped early (never chosen)."""
 
 
 REFIT_TOLERANCE = 0.02
@@ -85,6 +94,16 @@ def observation_cost(
     """Eq. 3 with p = 1: sum_ij w_ij d(R_ij, R_i R_j^T), in radians."""
     pred = np.einsum("eab,ecb->eac", rot[i], rot[j])
     return float(np.sum(w * geodesic_distance(R, pred)))
+
+
+def selection_cost(
+    H: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
+) -> float:
+    """The cost a depth candidate is chosen by: :func:`observation_cost` of the rotations
+    of its factor ``H`` (N, 3, 3); NaN when ``H`` is not finite."""
+    if not np.all(np.isfinite(H)):
+        return math.nan
+    return observation_cost(rotations_from_factor(H), i, j, R, w)
 
 
 def resolve_device(name: str) -> str:
@@ -155,6 +174,7 @@ class RotationAverager:
             cost_by_depth=out.cost_by_depth,
             duration_s=out.duration_s,
             iterations_by_depth=out.iterations_by_depth,
+            pruned_depths=out.pruned_depths,
         )
 
     def solve_component(
@@ -195,6 +215,7 @@ class RotationAverager:
         costs: dict[int, float] = {}
         rots: dict[int, FloatArray] = {}
         iterations = {depth: fit.iterations for depth, fit in fits.items()}
+        pruned = tuple(depth for depth, fit in fits.items() if fit.stopped)
         for depth, fit in fits.items():
             rot = rotations_from_factor(fit.H)
             if not np.all(np.isfinite(rot)):
@@ -203,13 +224,18 @@ class RotationAverager:
             costs[depth] = observation_cost(rot, fi, fj, fR, fw)
         if not costs:
             raise FloatingPointError("every DMF candidate diverged (non-finite factors)")
-        best = min(costs, key=lambda d: costs[d])
+        # A stopped candidate's cost is of an unfinished fit: only a fallback.
+        eligible = [d for d in costs if d not in pruned] or list(costs)
+        best = min(eligible, key=lambda d: costs[d])
+        if pruned:
+            self._say(f"candidate race: stopped depth(s) {', '.join(map(str, pruned))} at "
+                      f"iteration(s) {', '.join(str(iterations[d]) for d in pruned)}")
         rot = rots[best]
         rot = project_to_so3(np.einsum("nab,cb->nac", rot, rot[0]))  # gauge: R_i R_0^T
         rot[0] = np.eye(3)  # exactly, not up to the SVD's rounding
         if not opt.verify.enabled or i.size < 3:
             return ComponentSolution(rot, kept, best, costs, iterations, kept,
-                                     untested=untested)
+                                     untested=untested, pruned_depths=pruned)
         starts = {} if tree_rot is None else {"tree": tree_rot}  # the filter's tree
         try:
             odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
@@ -221,7 +247,8 @@ class RotationAverager:
             self._say(f"verification failed ({type(exc).__name__}: {exc}); keeping the DMF "
                       "solution")
             return ComponentSolution(rot, kept, best, costs, iterations, kept,
-                                     verification="failed", untested=untested)
+                                     verification="failed", untested=untested,
+                                     pruned_depths=pruned)
         # The edges the kept solution explains: the re-solve's inliers, or those the noise
         # model fitted to the DMF solution's own residuals calls inliers.
         final, refitted = out.rotations, out.chosen == "robust"
@@ -250,7 +277,7 @@ class RotationAverager:
                   "relocalized")
         return ComponentSolution(final, inlier, best, costs, iterations, kept,
                                  out.noise.sigma_deg, out.chosen, out.untested,
-                                 out.relocalized, trusted)
+                                 out.relocalized, trusted, pruned)
 
     def _refit_dmf(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                    keep: BoolArray, current: FloatArray, cap: float, tolerance: float = 0.0
@@ -309,6 +336,10 @@ class RotationAverager:
             delta = opt.sparse.huber_factor * float(np.median(np.abs(pred - R)))
         graphed = runtime.cuda_graphs and dense.explicit_constraint and not sparse
         workers, intra = _thread_plan(len(depths), runtime.threads, device, graphed)
+        race = None
+        if (dense.prune_ratio is not None and len(depths) > 1 and not sparse
+                and warm is None and dense.explicit_constraint):
+            race = CandidateRace(min(depths), dense.prune_ratio)
 
         def run(depth: int) -> DMFFit:
             fit = FitSpec(depth=depth, hidden_width=width, seed=runtime.seed + depth,
@@ -325,16 +356,24 @@ class RotationAverager:
             if warm is not None:  # a short fit from the warm start, no warm-up
                 short = replace(dense, iterations=opt.warm.iterations, lr=opt.warm.lr, warmup=0)
                 return fit_symmetric(n, i, j, R, w, short, fit, report, H0=warm)
+            if race is not None:
+                return _race_fit(race, depth, dense, (i, j, R, w), lambda monitor: fit_symmetric(
+                    n, i, j, R, w, dense, fit, report, monitor=monitor))
             return fit_symmetric(n, i, j, R, w, dense, fit, report)
 
+        # Largest depth first so the slow candidates start early; in a race, the
+        # pace-setter first (the others wait for it: it must have started).
+        order = sorted(depths, reverse=True)
+        if race is not None:
+            order = [race.pacer] + [d for d in order if d != race.pacer]
         previous = torch.get_num_threads()
         torch.set_num_threads(intra)
         try:
             if workers == 1:
-                return {d: run(d) for d in depths}
-            # Largest depth first so the slow candidates start early.
+                done = {d: run(d) for d in (order if race is not None else depths)}
+                return {d: done[d] for d in depths}
             with ThreadPoolExecutor(max_workers=workers) as pool:
-                futures = {d: pool.submit(run, d) for d in sorted(depths, reverse=True)}
+                futures = {d: pool.submit(run, d) for d in order}
                 return {d: futures[d].result() for d in depths}
         finally:
             torch.set_num_threads(previous)
@@ -342,6 +381,29 @@ class RotationAverager:
     def _say(self, text: str) -> None:
         if self.options.runtime.progress is not None:
             self.options.runtime.progress(text)
+
+
+def _race_fit(
+    race: CandidateRace, depth: int, dense: DenseFitOptions,
+    edges: tuple[IntArray, IntArray, FloatArray, FloatArray],
+    fit: Callable[[Callable[[int, FloatArray], bool]], DMFFit],
+) -> DMFFit:
+    """Run ``fit(monitor)``, the candidate ``depth`` of ``race``: at the race's checkpoints
+    (``dense.prune_after``, then every ``dense.prune_every`` iterations) the monitor reports
+    the :func:`selection_cost` on ``edges`` ``(i, j, R, w)`` and stops the fit when told."""
+
+    def monitor(step: int, H: FloatArray) -> bool:
+        if step < dense.prune_after or (step - dense.prune_after) % dense.prune_every:
+            return False
+        return race.report(depth, step, selection_cost(H, *edges))
+
+    cost: float | None = None
+    try:
+        result = fit(monitor)
+        cost = selection_cost(result.H, *edges)
+        return result
+    finally:  # always, or the later candidates wait for this one for ever
+        race.finish(depth, cost)
 
 
 def _thread_plan(
@@ -435,6 +497,8 @@ class ArraySolution:
     """Nodes the verification relocalized, over all components."""
     trusted: int = 0
     """Odometry edges the verification trusted, over all components."""
+    pruned_depths: tuple[int, ...] = ()
+    """Depth candidates the candidate race stopped early (largest component)."""
 
 
 def average_rotations(
@@ -462,6 +526,7 @@ def average_rotations(
     filter_kept = np.ones(i.size, bool)
     comp_anchor: list[int] = []
     depth, costs, iterations, best_size = 0, {}, {}, 0
+    pruned: tuple[int, ...] = ()
     noise, verification, untested, relocalized, trusted = math.nan, "", 0, 0, 0
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
@@ -488,11 +553,11 @@ def average_rotations(
         trusted += sol.trusted
         if nodes.size > best_size:
             depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
-            iterations = sol.iterations_by_depth
+            iterations, pruned = sol.iterations_by_depth, sol.pruned_depths
             noise, verification = sol.noise_sigma_deg, sol.verification
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
                          time.perf_counter() - t0, iterations, filter_kept, noise,
-                         verification, untested, relocalized, trusted)
+                         verification, untested, relocalized, trusted, pruned)
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:

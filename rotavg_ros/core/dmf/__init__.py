@@ -4,15 +4,17 @@
 graphs, :mod:`.vanilla` ablation (c); :mod:`.common` holds what they share. The options
 are :class:`~rotavg_ros.core.options.DenseFitOptions` and
 :class:`~rotavg_ros.core.options.SparseFitOptions`; :class:`FitSpec` carries what differs
-between the fits of one solve.
+between the fits of one solve; :mod:`.race` stops the candidates that have clearly lost.
 """
 
 from rotavg_ros.core.dmf.common import DMFFit, EdgeBlocks, FitSpec, factor_shapes
 from rotavg_ros.core.dmf.dense import fit_symmetric
+from rotavg_ros.core.dmf.race import CandidateRace
 from rotavg_ros.core.dmf.sparse import fit_symmetric_lbfgs
 from rotavg_ros.core.dmf.vanilla import fit_vanilla
 
 __all__ = [
+    "CandidateRace",
     "DMFFit",
     "EdgeBlocks",
     "FitSpec",

@@ -37,6 +37,7 @@ class DMFFit:
     weights: FloatArray  # (E,) final reweighted edge weights
     loss: float
     iterations: int = 0  # iterations run (fewer than asked when stopped early)
+    stopped: bool = False  # ended by its monitor (a candidate race), not by convergence
 
 
 def init_factors(

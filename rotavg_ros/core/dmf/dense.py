@@ -8,7 +8,8 @@ Symmetric, explicitly rank-3 model (the paper's design)::
 with hidden width ``h`` (the paper uses h = 3N). The 3x3 block ``H_i`` (rows 3i..3i+2)
 estimates ``R_i Q`` for one unknown ``Q`` in O(3): world-to-node rotations up to gauge.
 
-Loss (Sec. IV-D), evaluated per observed block in O(|E|), never forming G_hat::
+Loss (Sec. IV-D), evaluated per observed block in O(|E|), or on a small graph that observes
+most pairs from the whole G_hat (:mod:`.residuals`)::
 
     L = sum_{(i,j) in E} w_ij |H_i H_j^T - R_ij|_1  +  sum_i w_d |H_i H_i^T - I|_1
 
@@ -26,16 +27,18 @@ import torch
 
 from rotavg_ros.core.dmf.common import (
     DMFFit,
-    EdgeBlocks,
     FitSpec,
     factor_shapes,
-    h_t_from_nodes,
     init_factors,
     lr_at,
-    nodes_from_h_t,
-    soa_matmul,
     stacked,
     warm_factors,
+)
+from rotavg_ros.core.dmf.residuals import (
+    BlockResiduals,
+    DenseResiduals,
+    GatherResiduals,
+    observed_fraction,
 )
 from rotavg_ros.core.optim.adam import Adam
 from rotavg_ros.core.optim.factor_chain import FactorChain
@@ -49,7 +52,7 @@ def fit_symmetric(
     s: DenseFitOptions, fit: FitSpec,
     progress: Callable[[int, float], None] | None = None,
     H0: FloatArray | None = None,
-    monitor: Callable[[int, FloatArray], None] | None = None,
+    monitor: Callable[[int, FloatArray], bool | None] | None = None,
 ) -> DMFFit:
     """Fit H H^T to the observed blocks with Adam; returns H's blocks and the final weights.
 
@@ -65,7 +68,8 @@ def fit_symmetric(
     compared with ``s.tolerance``. Once it stays below for ``s.patience`` checks, the step
     size decays geometrically to ``lr * lr_final_ratio`` over ``s.cooldown`` iterations
     (what the cosine schedule's tail does for a full run: it makes L1 fits exact) and the
-    fit ends. ``monitor(step, H)`` (N, 3, 3) is called every ``s.check_every`` iterations.
+    fit ends. ``monitor(step, H)`` (N, 3, 3) is called every ``s.check_every`` iterations;
+    when it returns True the fit ends there (``DMFFit.stopped``: a candidate race's verdict).
     """
     dev = fit.device
     on_gpu = torch.device(dev).type == "cuda"
@@ -95,7 +99,7 @@ def _fit_symmetric(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     s: DenseFitOptions, fit: FitSpec,
     progress: Callable[[int, float], None] | None, H0: FloatArray | None,
-    monitor: Callable[[int, FloatArray], None] | None, use_graph: bool,
+    monitor: Callable[[int, FloatArray], bool | None] | None, use_graph: bool,
 ) -> DMFFit:
     dev = fit.device
     dt = getattr(torch, s.dtype)
@@ -106,10 +110,8 @@ def _fit_symmetric(
     else:
         factors = warm_factors(H0, shapes, s.init_scale, gen, dev, dt)
     chain = FactorChain(factors)
-    blocks = EdgeBlocks(num_nodes, i, j, dev)
-    tR = torch.as_tensor(R, device=dev).to(dt).permute(1, 2, 0).contiguous()
     weights = torch.as_tensor(w, device=dev).to(dt, copy=True)
-    eye = torch.eye(3, dtype=dt, device=dev)[:, :, None]
+    res = _residuals(num_nodes, i, j, R, weights, s)
     opt = Adam(factors, lr=s.lr)
     use_graph = use_graph and opt.fused
     if use_graph:
@@ -117,39 +119,36 @@ def _fit_symmetric(
     out: dict[str, torch.Tensor] = {}
 
     def step() -> None:
-        """One Adam step; leaves the pre-update blocks and residuals in ``out``."""
-        Hn = nodes_from_h_t(chain.forward())
-        Hi, Hj, P = blocks.products(Hn)
-        D = P.sub_(tR)
-        Dd = soa_matmul(Hn, Hn, transpose_b=True).sub_(eye)
-        G = torch.sign(D).mul_(weights)
-        grad = blocks.node_gradient(G, Hi, Hj)
-        grad.add_(soa_matmul(torch.sign(Dd), Hn), alpha=2.0 * s.diagonal_weight)
-        chain.backward(h_t_from_nodes(grad))
+        """One Adam step; leaves the pre-update blocks in ``out`` (residuals in ``res``)."""
+        Hn, grad_h_t = res.gradient(chain.forward())
+        chain.backward(grad_h_t)
         opt.step()
-        out["Hn"], out["D"], out["Dd"] = Hn, D, Dd
+        out["Hn"] = Hn
 
     run_step = StepGraph(step, enabled=use_graph)
     loss_val = float("nan")
     calm, previous = 0, None
     end, anneal_from = s.iterations, -1
-    step_no = 0
+    step_no, stopped = 0, False
     while step_no < end:
         opt.set_lr(lr_at(step_no, s) if anneal_from < 0
                    else _anneal_lr(step_no, anneal_from, end, s))
         run_step()
-        Hn, D, Dd = out["Hn"], out["D"], out["Dd"]
+        Hn = out["Hn"]
         if progress is not None and (step_no + 1) % 250 == 0:
-            loss_val = _l1_loss(D, Dd, weights, s.diagonal_weight)
+            loss_val = res.loss()
             progress(step_no + 1, loss_val)
         if (s.reweighting and step_no + 1 > s.warmup
                 and (step_no + 1 - s.warmup) % s.reweight_every == 0):
-            r = D.pow(2).sum(dim=(0, 1)).sqrt()
+            r = res.edge_norms()
             tau = torch.median(r)
             weights *= torch.where(r > tau, tau / r.clamp_min(1e-12), torch.ones_like(r))
+            res.reweighted()
         step_no += 1
-        if monitor is not None and step_no % s.check_every == 0:
-            monitor(step_no, stacked(Hn))
+        if monitor is not None and step_no % s.check_every == 0 and monitor(step_no,
+                                                                           stacked(Hn)):
+            stopped = True
+            break
         if s.tolerance > 0 and anneal_from < 0 and step_no % s.check_every == 0:
             if previous is not None and step_no > s.warmup:
                 change = float((Hn - previous).norm() / Hn.norm().clamp_min(1e-30))
@@ -158,12 +157,9 @@ def _fit_symmetric(
                     anneal_from, end = step_no, min(end, step_no + s.cooldown)
             previous = Hn.clone()  # a replayed graph overwrites Hn in place
     with torch.no_grad():
-        Hn = nodes_from_h_t(chain.forward())
-        Hi, Hj, P = blocks.products(Hn)
-        D = P.sub_(tR)
-        Dd = soa_matmul(Hn, Hn, transpose_b=True).sub_(eye)
-        loss_val = _l1_loss(D, Dd, weights, s.diagonal_weight)
-    return DMFFit(stacked(Hn), weights.double().cpu().numpy(), loss_val, end)
+        Hn = res.gradient(chain.forward())[0]
+        loss_val = res.loss()
+    return DMFFit(stacked(Hn), weights.double().cpu().numpy(), loss_val, step_no, stopped)
 
 
 def _anneal_lr(step: int, start: int, end: int, s: DenseFitOptions) -> float:
@@ -173,6 +169,13 @@ def _anneal_lr(step: int, start: int, end: int, s: DenseFitOptions) -> float:
     return hi * (lo / hi) ** ((step - start) / max(1, end - start - 1))
 
 
-def _l1_loss(D: torch.Tensor, Dd: torch.Tensor, weights: torch.Tensor, diag: float) -> float:
-    """The weighted entry-wise L1 loss from the edge and diagonal residual blocks."""
-    return float((weights * D.abs().sum(dim=(0, 1))).sum() + diag * Dd.abs().sum())
+def _residuals(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, weights: torch.Tensor,
+               s: DenseFitOptions) -> BlockResiduals:
+    """The loss on the whole ``H H^T`` for a graph on the CPU of at most
+    ``s.dense_product_max_nodes`` nodes that observes at least ``s.dense_product_density``
+    of the node pairs; else over the observed blocks."""
+    dense = (weights.device.type == "cpu" and s.dense_product_density is not None
+             and num_nodes <= s.dense_product_max_nodes
+             and observed_fraction(num_nodes, int(i.shape[0])) >= s.dense_product_density)
+    kind = DenseResiduals if dense else GatherResiduals
+    return kind(num_nodes, i, j, R, weights, s.diagonal_weight)

@@ -1,0 +1,129 @@
+"""The dense fit's weighted L1 loss and its gradient with respect to H, two ways.
+
+Loss (see :mod:`.dense`), for ``H`` (3N x 3) with 3x3 blocks ``H_i``::
+
+    L = sum_{(i,j) in E} w_ij |H_i H_j^T - R_ij|_1  +  sum_i w_d |H_i H_i^T - I|_1
+
+:class:`GatherResiduals` gathers the two end blocks of every edge (O(|E|)); for a graph that
+observes most pairs, :class:`DenseResiduals` forms ``G = H H^T`` (3N x 3N) in one product
+instead and masks it with a per-entry weight matrix. Both keep the residual of the last
+:meth:`gradient` call for the loss and the per-edge residual norms of the reweighting.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import torch
+
+from rotavg_ros.core.dmf.common import EdgeBlocks, h_t_from_nodes, nodes_from_h_t, soa_matmul
+from rotavg_ros.core.types import FloatArray, IntArray
+
+
+class BlockResiduals(Protocol):
+    """What the dense fit needs of its loss (``weights``: the (E,) edge weights, updated
+    in place by the reweighting, which then calls :meth:`reweighted`)."""
+
+    weights: torch.Tensor
+
+    def gradient(self, h_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(H as node blocks (3, 3, N), dL/dH^T (3, 3N))`` at ``H^T`` = ``h_t``."""
+
+    def edge_norms(self) -> torch.Tensor:
+        """(E,) ``||H_i H_j^T - R_ij||_F`` at the last :meth:`gradient` call."""
+
+    def loss(self) -> float:
+        """``L`` at the last :meth:`gradient` call."""
+
+    def reweighted(self) -> None:
+        """``weights`` changed (in place)."""
+
+
+def observed_fraction(num_nodes: int, num_edges: int) -> float:
+    """Fraction of the node pairs that carry an edge."""
+    return num_edges / max(1, num_nodes * (num_nodes - 1) // 2)
+
+
+class GatherResiduals:
+    """The loss over the observed blocks only, in the (3, 3, E) layout of :class:`EdgeBlocks`."""
+
+    def __init__(self, num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
+                 weights: torch.Tensor, diagonal_weight: float) -> None:
+        dev, dt = weights.device, weights.dtype
+        self.blocks = EdgeBlocks(num_nodes, i, j, str(dev))
+        self.tR = torch.as_tensor(R, device=dev).to(dt).permute(1, 2, 0).contiguous()
+        self.eye = torch.eye(3, dtype=dt, device=dev)[:, :, None]
+        self.weights = weights
+        self.diagonal_weight = diagonal_weight
+        self.D = self.Dd = torch.empty(0)
+
+    def gradient(self, h_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        Hn = nodes_from_h_t(h_t)
+        Hi, Hj, P = self.blocks.products(Hn)
+        self.D = P.sub_(self.tR)
+        self.Dd = soa_matmul(Hn, Hn, transpose_b=True).sub_(self.eye)
+        G = torch.sign(self.D).mul_(self.weights)
+        grad = self.blocks.node_gradient(G, Hi, Hj)
+        grad.add_(soa_matmul(torch.sign(self.Dd), Hn), alpha=2.0 * self.diagonal_weight)
+        return Hn, h_t_from_nodes(grad)
+
+    def edge_norms(self) -> torch.Tensor:
+        return self.D.pow(2).sum(dim=(0, 1)).sqrt()
+
+    def loss(self) -> float:
+        return float((self.weights * self.D.abs().sum(dim=(0, 1))).sum()
+                     + self.diagonal_weight * self.Dd.abs().sum())
+
+    def reweighted(self) -> None:
+        pass
+
+
+class DenseResiduals:
+    """The loss from the whole ``G = H H^T`` (3N x 3N), masked by a weight matrix.
+
+    With ``T`` holding ``R_ij`` at block (i, j), ``R_ij^T`` at (j, i) and ``I`` on the
+    diagonal, and ``W`` holding ``w_ij`` at both blocks of an edge, ``2 w_d`` on the
+    diagonal blocks and 0 elsewhere: ``L = 1/2 sum W * |G - T|`` and, ``S = W * sign(G - T)``
+    being symmetric, ``dL/dH = S H``: two matrix products per step.
+    """
+
+    def __init__(self, num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
+                 weights: torch.Tensor, diagonal_weight: float) -> None:
+        dev, dt = weights.device, weights.dtype
+        n = num_nodes
+        self.ti = torch.as_tensor(i, dtype=torch.int64, device=dev)
+        self.tj = torch.as_tensor(j, dtype=torch.int64, device=dev)
+        self.diag = torch.arange(n, device=dev)
+        Rt = torch.as_tensor(R, device=dev).to(dt)
+        T = torch.zeros(n, n, 3, 3, dtype=dt, device=dev)
+        T[self.ti, self.tj] = Rt
+        T[self.tj, self.ti] = Rt.transpose(1, 2)
+        T[self.diag, self.diag] = torch.eye(3, dtype=dt, device=dev)
+        self.T = T.permute(0, 2, 1, 3).reshape(3 * n, 3 * n)  # [3a + r, 3b + c]
+        self.W = torch.zeros_like(self.T)
+        self.weights = weights
+        self.diagonal_weight = diagonal_weight
+        self.D = torch.empty_like(self.T)
+        self.S = torch.empty_like(self.T)
+        self.reweighted()
+
+    def gradient(self, h_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        # Into buffers kept across steps: a fresh 3N x 3N tensor per step costs page faults.
+        torch.mm(h_t.T, h_t, out=self.D).sub_(self.T)
+        torch.sign(self.D, out=self.S).mul_(self.W)
+        return nodes_from_h_t(h_t), torch.mm(h_t, self.S)  # (S H)^T = H^T S
+
+    def edge_norms(self) -> torch.Tensor:
+        n = self.diag.numel()
+        return self.D.view(n, 3, n, 3).pow(2).sum(dim=(1, 3))[self.ti, self.tj].sqrt()
+
+    def loss(self) -> float:
+        return 0.5 * float((self.W * self.D.abs()).sum())
+
+    def reweighted(self) -> None:
+        n = self.diag.numel()
+        Wb = torch.zeros(n, n, dtype=self.W.dtype, device=self.W.device)
+        Wb[self.ti, self.tj] = self.weights
+        Wb[self.tj, self.ti] = self.weights
+        Wb[self.diag, self.diag] = 2.0 * self.diagonal_weight
+        self.W.copy_(Wb[:, None, :, None].expand(n, 3, n, 3).reshape(3 * n, 3 * n))
