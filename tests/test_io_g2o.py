@@ -68,6 +68,30 @@ def test_malformed_line_names_file_and_line(tmp_path: Path, line: str, fragment:
     assert info.value.line == 3
 
 
+@pytest.mark.parametrize("order", ["rotation first", "structure first"])
+def test_the_first_bad_line_in_the_file_is_the_one_reported(tmp_path: Path,
+                                                            order: str) -> None:
+    """Edge rotations are checked in one batch after the line-by-line pass; the error
+    still names the first bad line of the file, whichever check finds it."""
+    good = "EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1"
+    non_unit = "EDGE_SE3:QUAT 1 2 0 0 0 0 0 0 2"
+    not_pd = "EDGE_SE3:QUAT 2 3 0 0 0 0 0 0 1 " + INFO.format(a=1, b=0, c=1)
+    malformed = "EDGE_SE3:QUAT 3 4 0 0 0"
+    lines = ([good, non_unit, good, malformed, not_pd] if order == "rotation first"
+             else [good, malformed, non_unit, not_pd])
+    with pytest.raises(G2oFormatError) as info:
+        read_g2o(_write(tmp_path, "\n".join(lines)))
+    assert info.value.line == 2
+    assert ("not 1" if order == "rotation first" else "expects") in str(info.value)
+    with pytest.raises(G2oFormatError, match="information") as info:
+        read_g2o(_write(tmp_path, "\n".join([good, good, not_pd, non_unit])))
+    assert info.value.line == 3
+    indefinite = "EDGE_SE3:QUAT 2 3 0 0 0 0 0 0 1 100 0 0 0 0 0 100 0 0 0 0 100 0 0 0 1 2 0 1 0 1"
+    with pytest.raises(G2oFormatError, match="positive definite") as info:
+        read_g2o(_write(tmp_path, "\n".join([good, indefinite, non_unit])))
+    assert info.value.line == 2
+
+
 def test_unknown_tag_skipped_when_not_strict(tmp_path: Path) -> None:
     g = read_g2o(_write(tmp_path, FIXTURE + "\nBOGUS_TAG 1 2 3"), strict=False)
     assert g.num_unknown == 1 and g.skipped_tags["BOGUS_TAG"] == 1 and g.num_edges == 2

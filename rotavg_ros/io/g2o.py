@@ -171,7 +171,10 @@ def _parse_vertex(path: PathLike, lineno: int, tokens: list[str]) -> tuple[int, 
 
 def _parse_edge(
     path: PathLike, lineno: int, tokens: list[str]
-) -> tuple[int, int, FloatArray, float]:
+) -> tuple[int, int, list[float]]:
+    """``(i, j, the 7 or 28 numbers after the ids)``: the line's structure checked; the
+    quaternion and the information block are checked for many edges at once by
+    :func:`_edge_rotations`."""
     if len(tokens) not in (10, 10 + _N_INFO):
         raise G2oFormatError(
             path, lineno, f"{EDGE_TAG} expects 9 fields (i j x y z qx qy qz qw) plus "
@@ -180,10 +183,43 @@ def _parse_edge(
     j = _int(path, lineno, tokens[2], "edge vertex id")
     if i == j:
         raise G2oFormatError(path, lineno, f"self-loop on vertex {i}")
-    vals = _floats(path, lineno, tokens[3:], EDGE_TAG)
-    R = _quat(path, lineno, vals[3:7])
-    weight = _rotation_weight(path, lineno, vals[7:]) if len(vals) > 7 else 1.0
-    return i, j, R, weight
+    return i, j, _floats(path, lineno, tokens[3:], EDGE_TAG)
+
+
+def _edge_rotations(path: PathLike, linenos: list[int], values: list[list[float]]
+                    ) -> tuple[FloatArray, FloatArray, G2oFormatError | None]:
+    """``(R (E, 3, 3), weights (E,), the error of the first bad edge or None)`` for parsed
+    edge lines, checked as :func:`_quat` and :func:`_rotation_weight` check one edge.
+    Edges from the first bad one on are not returned."""
+    count = len(values)
+    quats = np.array([v[3:7] for v in values], dtype=np.float64).reshape(count, 4)
+    weights = np.ones(count)
+    bad = np.zeros(count, bool)
+    norms = np.linalg.norm(quats, axis=1)
+    bad |= (norms < _MIN_QUAT_NORM) | (np.abs(norms - 1.0) > QUAT_NORM_TOL)
+    with_info = np.array([len(v) > 7 for v in values], dtype=bool)
+    if with_info.any():
+        info = np.array([v[7:][_ROT_INFO] for v, has in zip(values, with_info, strict=True)
+                         if has], dtype=np.float64)
+        a, b, c, d, e, f = info.T
+        blocks = np.stack([np.stack([a, b, c], -1), np.stack([b, d, e], -1),
+                           np.stack([c, e, f], -1)], 1)
+        positive = (np.minimum(np.minimum(a, d), f) > 0.0)
+        positive &= np.linalg.eigvalsh(np.where(positive[:, None, None], blocks,
+                                                np.eye(3)))[:, 0] > 0.0
+        bad[with_info] |= ~positive
+        weights[with_info] = (a + d + f) / 3.0
+    error = None
+    first = int(np.argmax(bad)) if bad.any() else count
+    if first < count:  # the one-edge checks give the message
+        try:
+            _quat(path, linenos[first], values[first][3:7])
+            _rotation_weight(path, linenos[first], values[first][7:])
+        except G2oFormatError as exc:
+            error = exc
+        else:  # (the batch and the one-edge checks agree; never lose edges silently)
+            error = G2oFormatError(path, linenos[first], "invalid rotation or information")
+    return quat_to_matrix(quats[:first]), weights[:first], error
 
 
 # ---------------------------------------------------------------------- public API
@@ -200,30 +236,56 @@ def read_g2o(path: PathLike, strict: bool = True) -> G2oGraph:
     graph = ViewGraph()
     vertices: dict[int, FloatArray] = {}
     skipped: dict[str, int] = {}
-    num_edges = num_unsupported = num_unknown = 0
     lines = _read_lines(path)
+    # Edge lines are parsed line by line and their rotations converted all at once; the
+    # first error in file order is raised either way.
+    ends: list[tuple[int, int]] = []
+    linenos: list[int] = []
+    values: list[list[float]] = []
+    error: G2oFormatError | None = None
+    try:
+        _read_lines_into(path, lines, strict, graph, vertices, skipped, ends, linenos, values)
+    except G2oFormatError as exc:
+        error = exc
+    R, w, bad_edge = _edge_rotations(path, linenos, values)
+    if bad_edge is not None:
+        raise bad_edge
+    if error is not None:
+        raise error
+    for (i, j), Rk, wk in zip(ends, R, w, strict=True):
+        graph.add_edge(i, j, Rk, float(wk))
+    num_edges = len(ends)
+    num_unsupported = sum(skipped.get(tag, 0) for tag in UNSUPPORTED_TAGS)
+    num_unknown = sum(k for tag, k in skipped.items() if tag not in UNSUPPORTED_TAGS)
+    return G2oGraph(graph, vertices, len(lines), len(vertices), num_edges,
+                    num_unsupported, num_unknown, skipped)
+
+
+def _read_lines_into(path: PathLike, lines: list[str], strict: bool, graph: ViewGraph,
+                     vertices: dict[int, FloatArray], skipped: dict[str, int],
+                     ends: list[tuple[int, int]], linenos: list[int],
+                     values: list[list[float]]) -> None:
+    """First pass of :func:`read_g2o`: vertices, node order, skipped tags, and each edge
+    line's ids and numbers (its rotation is converted later)."""
     for lineno, tokens in _tokenized(lines):
         tag = tokens[0]
         if tag == EDGE_TAG:
-            i, j, R, w = _parse_edge(path, lineno, tokens)
-            graph.add_edge(i, j, R, w)
-            num_edges += 1
+            i, j, vals = _parse_edge(path, lineno, tokens)
+            graph.add_node(i)  # nodes in the order the file names them
+            graph.add_node(j)
+            ends.append((i, j))
+            linenos.append(lineno)
+            values.append(vals)
         elif tag == VERTEX_TAG:
             vid, Rv = _parse_vertex(path, lineno, tokens)
             if vid in vertices:
                 raise G2oFormatError(path, lineno, f"duplicate vertex id {vid}")
             vertices[vid] = Rv
             graph.add_node(vid)
-        elif tag in UNSUPPORTED_TAGS:
-            num_unsupported += 1
-            skipped[tag] = skipped.get(tag, 0) + 1
-        elif not strict:
-            num_unknown += 1
+        elif tag in UNSUPPORTED_TAGS or not strict:
             skipped[tag] = skipped.get(tag, 0) + 1
         else:
             raise G2oFormatError(path, lineno, f"unknown tag {tag!r}")
-    return G2oGraph(graph, vertices, len(lines), len(vertices), num_edges,
-                    num_unsupported, num_unknown, skipped)
 
 
 def read_g2o_vertices(path: PathLike) -> tuple[list[int], FloatArray]:
