@@ -138,6 +138,11 @@ def test_normal_matrix_solvers_agree(monkeypatch: pytest.MonkeyPatch) -> None:
     assert fallback.sparse
     monkeypatch.setattr(gauss_newton, "ITERATIVE_MIN_DEGREE", 1000.0)  # not connected enough
     assert Factor(Hf, free).sparse
+    token = gauss_newton.WELL_CONNECTED.set(True)  # ... unless the input graph is
+    try:
+        assert not Factor(Hf, free).sparse
+    finally:
+        gauss_newton.WELL_CONNECTED.reset(token)
 
 
 def test_noise_fit_recovers_scale_and_outlier_fraction() -> None:

@@ -44,6 +44,8 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from rotavg_ros.core.filter.edge_filter import tree_rotations
 from rotavg_ros.core.robust.gauss_newton import (
+    ITERATIVE_MIN_DEGREE,
+    WELL_CONNECTED,
     prediction_variance,
     refine_least_squares,
     residual_angles,
@@ -240,7 +242,7 @@ def log_likelihood_of(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
     return log_likelihood(r, model), model
 
 
-def verify(
+def _verify(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     dmf_rotations: FloatArray, dmf_kept: BoolArray, starts: dict[str, FloatArray],
     known_inlier: BoolArray | None = None,
@@ -249,12 +251,7 @@ def verify(
     rounds: int = 2,
     margin: float = 0.02,
 ) -> VerifyOutcome:
-    """Robust re-solve of every edge and the choice against the DMF solution (see the
-    module docstring).
-
-    ``starts`` are extra start points (name -> rotations) besides the DMF solution and the
-    chain tree's rotations.
-    """
+    """:func:`verify`, with the solver choice of the normal matrices already set."""
     odometry = np.zeros(i.size, bool) if known_inlier is None else known_inlier
     known = np.zeros(i.size, bool)  # trusted edges: none until the noise scale is known
 
@@ -352,3 +349,28 @@ def verify(
                              classified | known)
     return VerifyOutcome(rot, inlier, noise, "robust", costs, start,
                          int(np.sum(np.isnan(t) & ~tree)), cap, relocalized, known, inlier)
+
+
+def verify(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    dmf_rotations: FloatArray, dmf_kept: BoolArray, starts: dict[str, FloatArray],
+    known_inlier: BoolArray | None = None,
+    initial_threshold: float = math.radians(30.0),
+    max_threshold: float = math.radians(90.0),
+    rounds: int = 2,
+    margin: float = 0.02,
+) -> VerifyOutcome:
+    """Robust re-solve of every edge and the choice against the DMF solution (see the
+    module docstring).
+
+    ``starts`` are extra start points (name -> rotations) besides the DMF solution and the
+    chain tree's rotations. On a well-connected input graph (at least
+    ``ITERATIVE_MIN_DEGREE`` edges per node: an SfM view graph) every large normal matrix
+    is solved by conjugate gradients first (:data:`~.gauss_newton.WELL_CONNECTED`).
+    """
+    token = WELL_CONNECTED.set(2.0 * i.size / max(num_nodes, 1) >= ITERATIVE_MIN_DEGREE)
+    try:
+        return _verify(num_nodes, i, j, R, w, dmf_rotations, dmf_kept, starts, known_inlier,
+                       initial_threshold, max_threshold, rounds, margin)
+    finally:
+        WELL_CONNECTED.reset(token)
