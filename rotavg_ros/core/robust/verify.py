@@ -35,8 +35,11 @@ Conventions: world-to-node ``R_i``, ``R_ij ~= R_i R_j^T``, node 0 fixed (anchor)
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Concatenate, ParamSpec
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -66,6 +69,8 @@ exceeds 4.0 sigma with probability about 0.1%)."""
 ODOMETRY_COVERAGE = 0.9
 """``odometry="auto"``: consecutive edges are odometry when they join at least this fraction
 of the consecutive node pairs."""
+
+P = ParamSpec("P")
 
 EXACT_LEVERAGE_EDGES = 100
 """At most this many high-leverage edges off the chain tree (loop closures) get their
@@ -242,7 +247,26 @@ def log_likelihood_of(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
     return log_likelihood(r, model), model
 
 
-def _verify(
+def _well_connected_graphs_solved_iteratively(
+    solve: Callable[Concatenate[int, IntArray, P], VerifyOutcome],
+) -> Callable[Concatenate[int, IntArray, P], VerifyOutcome]:
+    """Run ``solve(num_nodes, i, ...)`` with :data:`~.gauss_newton.WELL_CONNECTED` set when
+    the input graph has at least ``ITERATIVE_MIN_DEGREE`` edges per node (an SfM view
+    graph): every large normal matrix is then solved by conjugate gradients first."""
+
+    @functools.wraps(solve)
+    def run(num_nodes: int, i: IntArray, *args: P.args, **kwargs: P.kwargs) -> VerifyOutcome:
+        token = WELL_CONNECTED.set(2.0 * i.size / max(num_nodes, 1) >= ITERATIVE_MIN_DEGREE)
+        try:
+            return solve(num_nodes, i, *args, **kwargs)
+        finally:
+            WELL_CONNECTED.reset(token)
+
+    return run
+
+
+@_well_connected_graphs_solved_iteratively
+def verify(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     dmf_rotations: FloatArray, dmf_kept: BoolArray, starts: dict[str, FloatArray],
     known_inlier: BoolArray | None = None,
@@ -251,7 +275,12 @@ def _verify(
     rounds: int = 2,
     margin: float = 0.02,
 ) -> VerifyOutcome:
-    """:func:`verify`, with the solver choice of the normal matrices already set."""
+    """Robust re-solve of every edge and the choice against the DMF solution (see the
+    module docstring).
+
+    ``starts`` are extra start points (name -> rotations) besides the DMF solution and the
+    chain tree's rotations.
+    """
     odometry = np.zeros(i.size, bool) if known_inlier is None else known_inlier
     known = np.zeros(i.size, bool)  # trusted edges: none until the noise scale is known
 
@@ -350,27 +379,3 @@ def _verify(
     return VerifyOutcome(rot, inlier, noise, "robust", costs, start,
                          int(np.sum(np.isnan(t) & ~tree)), cap, relocalized, known, inlier)
 
-
-def verify(
-    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-    dmf_rotations: FloatArray, dmf_kept: BoolArray, starts: dict[str, FloatArray],
-    known_inlier: BoolArray | None = None,
-    initial_threshold: float = math.radians(30.0),
-    max_threshold: float = math.radians(90.0),
-    rounds: int = 2,
-    margin: float = 0.02,
-) -> VerifyOutcome:
-    """Robust re-solve of every edge and the choice against the DMF solution (see the
-    module docstring).
-
-    ``starts`` are extra start points (name -> rotations) besides the DMF solution and the
-    chain tree's rotations. On a well-connected input graph (at least
-    ``ITERATIVE_MIN_DEGREE`` edges per node: an SfM view graph) every large normal matrix
-    is solved by conjugate gradients first (:data:`~.gauss_newton.WELL_CONNECTED`).
-    """
-    token = WELL_CONNECTED.set(2.0 * i.size / max(num_nodes, 1) >= ITERATIVE_MIN_DEGREE)
-    try:
-        return _verify(num_nodes, i, j, R, w, dmf_rotations, dmf_kept, starts, known_inlier,
-                       initial_threshold, max_threshold, rounds, margin)
-    finally:
-        WELL_CONNECTED.reset(token)
