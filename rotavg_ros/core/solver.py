@@ -251,9 +251,9 @@ class RotationAverager:
                                      pruned_depths=pruned)
         # The edges the kept solution explains: the re-solve's inliers, or those the noise
         # model fitted to the DMF solution's own residuals calls inliers.
-        final, refitted = out.rotations, out.chosen == "robust"
+        final = out.rotations
         inlier = out.inlier if out.classified is None else out.classified
-        if refitted:
+        if out.chosen == "robust":
             final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap)
         elif sparse and np.any(out.inlier & ~inlier):
             # Sparse mode's Huber fit gives gross outliers an L1 say; where its own
@@ -262,11 +262,10 @@ class RotationAverager:
             # differ by about 0.01%). The dense fit's reweighting already gives them almost
             # no say: there a refit changed little (Ellis Island: 2.209 / 0.393 ->
             # 2.249 / 0.386 deg) and cost a whole fit.
-            refit = self._refit_dmf(n, i, j, R, w, inlier, out.rotations, out.cap,
+            final = self._refit_dmf(n, i, j, R, w, inlier, out.rotations, out.cap,
                                     tolerance=REFIT_TOLERANCE)
-            refitted = refit is not out.rotations
-            final = refit
-        if refitted or out.relocalized:  # (the anchor may have moved)
+        refitted = final is not out.rotations
+        if out.chosen == "robust" or refitted or out.relocalized:  # (the anchor may move)
             final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
             final[0] = np.eye(3)
         trusted = int(out.known.sum()) if out.known is not None else 0
