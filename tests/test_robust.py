@@ -12,7 +12,7 @@ from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.robust import gauss_newton
 from rotavg_ros.core.robust.gauss_newton import (
     Factor,
-    _assemble,
+    _laplacian,
     _normal_matrix,
     jacobi_pcg,
     prediction_variance,
@@ -83,6 +83,19 @@ def test_least_squares_converges_to_exact_data() -> None:
     assert _mean_error(rot, truth) < 1e-6
 
 
+def _explicit_normal_matrix(rot: np.ndarray, i: np.ndarray, j: np.ndarray, w: np.ndarray
+                            ) -> np.ndarray:
+    """``sum_e w_e A_e^T A_e`` (3N x 3N) from its definition, ``A_e = [R_j R_i^T, -I]``."""
+    n = rot.shape[0]
+    H = np.zeros((3 * n, 3 * n))
+    for e in range(i.size):
+        A = np.zeros((3, 3 * n))
+        A[:, 3 * i[e]:3 * i[e] + 3] = rot[j[e]] @ rot[i[e]].T
+        A[:, 3 * j[e]:3 * j[e] + 3] -= np.eye(3)
+        H += w[e] * A.T @ A
+    return H
+
+
 def test_prediction_variance_matches_the_inverse() -> None:
     rng = np.random.default_rng(1)
     n = 12
@@ -91,10 +104,9 @@ def test_prediction_variance_matches_the_inverse() -> None:
     keep = rng.random(ii.size) < 0.5
     i, j = ii[keep], jj[keep]
     w = np.where(np.arange(i.size) % 5 == 0, 0.0, 1.0 + rng.random(i.size))
-    lu, _, free = _normal_matrix(rot, i[w > 0], j[w > 0], w[w > 0])
-    assert lu is not None
+    H = _explicit_normal_matrix(rot, i, j, w)[3:, 3:]  # node 0 fixed
     Hinv = np.zeros((3 * n, 3 * n))
-    Hinv[np.ix_(free, free)] = lu.solve(np.eye(free.size))
+    Hinv[3:, 3:] = np.linalg.inv(H)
     Pt = np.einsum("eab,ecb->eac", rot[j], rot[i])
     exact = []
     for e in range(i.size):
@@ -106,41 +118,59 @@ def test_prediction_variance_matches_the_inverse() -> None:
     np.testing.assert_allclose(solved, exact, rtol=1e-9)
     probed = prediction_variance(rot, i, j, w, probes=2000)
     np.testing.assert_allclose(probed, exact, rtol=0.15)
-    # Leverages of the fitted edges add up to the degrees of freedom.
-    assert float(np.sum(w * solved)) == pytest.approx(free.size / 3.0, rel=1e-9)
+    # Leverages of the fitted edges add up to the degrees of freedom (per axis).
+    assert float(np.sum(w * solved)) == pytest.approx(n - 1, rel=1e-9)
 
 
-def test_normal_matrix_solvers_agree(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Dense Cholesky, Jacobi-preconditioned CG (a large well-connected graph) and SuperLU
-    (a sparse one) solve the same normal equations; a CG that cannot converge falls back
-    to SuperLU."""
-    rng = np.random.default_rng(3)
-    n = 120
+def test_normal_matrix_is_the_rotated_laplacian() -> None:
+    """The normal matrix's solver (a solve with the scalar graph Laplacian, rotated in and
+    out) solves the normal equations assembled from their definition."""
+    rng = np.random.default_rng(4)
+    n = 30
     rot = random_rotations(n, rng)
     ii, jj = np.triu_indices(n, 1)
-    keep = rng.random(ii.size) < 0.2  # mean degree about 24
+    keep = rng.random(ii.size) < 0.2
     i, j = ii[keep], jj[keep]
-    Hf, _, free = _assemble(rot, i, j, 0.5 + rng.random(i.size))
-    b = rng.normal(size=(free.size, 4))
-    reference = np.linalg.solve(Hf.toarray(), b)
-    dense = Factor(Hf, free)
+    w = 0.5 + rng.random(i.size)
+    solver, _, free = _normal_matrix(rot, i, j, w)
+    assert solver is not None
+    H = _explicit_normal_matrix(rot, i, j, w)[np.ix_(free, free)]
+    b = rng.normal(size=(free.size, 3))
+    np.testing.assert_allclose(solver.solve(b), np.linalg.solve(H, b), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(solver.solve(b[:, 0]), np.linalg.solve(H, b[:, 0]), rtol=1e-8,
+                               atol=1e-10)
+
+
+def test_laplacian_solvers_agree(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Dense Cholesky, Jacobi-preconditioned CG (a large well-connected graph) and SuperLU
+    (a sparse one) solve the same Laplacian system; a CG that cannot converge falls back
+    to SuperLU."""
+    rng = np.random.default_rng(3)
+    n = 360
+    ii, jj = np.triu_indices(n, 1)
+    keep = rng.random(ii.size) < 0.07  # mean degree about 25
+    i, j = ii[keep], jj[keep]
+    L, nodes = _laplacian(n, i, j, 0.5 + rng.random(i.size))
+    b = rng.normal(size=(nodes.size, 4))
+    reference = np.linalg.solve(L.toarray(), b)
+    dense = Factor(L, nodes)
     monkeypatch.setattr(gauss_newton, "DENSE_MAX", 10)  # as if the graph were large
-    iterative = Factor(Hf, free)
+    iterative = Factor(L, nodes)
     assert not iterative.sparse  # CG, no factorization
     np.testing.assert_allclose(dense.solve(b), reference, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(iterative.solve(b), reference, rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(iterative.solve(b[:, 0]), reference[:, 0], rtol=1e-4,
                                atol=1e-6)
-    assert jacobi_pcg(Hf, b, 1.0 / Hf.diagonal(), 1e-10, 2) is None
+    assert jacobi_pcg(L, b, 1.0 / L.diagonal(), 1e-10, 2) is None
     monkeypatch.setattr(gauss_newton, "PCG_MAX_ITERATIONS", 2)  # CG gives up: SuperLU
-    fallback = Factor(Hf, free)
+    fallback = Factor(L, nodes)
     np.testing.assert_allclose(fallback.solve(b), reference, rtol=1e-8, atol=1e-10)
     assert fallback.sparse
     monkeypatch.setattr(gauss_newton, "ITERATIVE_MIN_DEGREE", 1000.0)  # not connected enough
-    assert Factor(Hf, free).sparse
+    assert Factor(L, nodes).sparse
     token = gauss_newton.WELL_CONNECTED.set(True)  # ... unless the input graph is
     try:
-        assert not Factor(Hf, free).sparse
+        assert not Factor(L, nodes).sparse
     finally:
         gauss_newton.WELL_CONNECTED.reset(token)
 

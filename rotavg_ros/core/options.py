@@ -153,6 +153,9 @@ class SparseFitOptions:
     outlier_factor: float = field(default=5.0, metadata=_flat("sparse_outlier_factor"))
     """Edges whose noise-scaled residual exceeds this x the median are down-weighted
     between L-BFGS runs."""
+    precondition: bool = field(default=True, metadata=_flat("sparse_precondition"))
+    """Depth 2: precondition L-BFGS with the graph Laplacian of the loss's curvature
+    (:mod:`rotavg_ros.core.dmf.precondition`; beyond the paper, off in profile ``paper``)."""
 
 
 @dataclass
@@ -227,7 +230,7 @@ _GROUPS: dict[str, type] = {
 
 PROFILES: dict[str, dict[str, Any]] = {
     "default": {},
-    "paper": {"verify": False, "prune_ratio": None},
+    "paper": {"verify": False, "prune_ratio": None, "sparse_precondition": False},
 }
 """Named option sets by flat name. ``paper`` is Algorithm 1 and the DMF of the paper to the
 letter (with our documented tie rule): every depth candidate runs to the end; ``default``

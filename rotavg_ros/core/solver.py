@@ -254,7 +254,8 @@ class RotationAverager:
         final = out.rotations
         inlier = out.inlier if out.classified is None else out.classified
         if out.chosen == "robust":
-            final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap)
+            final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap,
+                                    warm=sparse)
         elif sparse and np.any(out.inlier & ~inlier):
             # Sparse mode's Huber fit gives gross outliers an L1 say; where its own
             # residuals show some, fit it again without them, and keep that unless it
@@ -263,7 +264,7 @@ class RotationAverager:
             # no say: there a refit changed little (Ellis Island: 2.209 / 0.393 ->
             # 2.249 / 0.386 deg) and cost a whole fit.
             final = self._refit_dmf(n, i, j, R, w, inlier, out.rotations, out.cap,
-                                    tolerance=REFIT_TOLERANCE)
+                                    tolerance=REFIT_TOLERANCE, warm=True)
         refitted = final is not out.rotations
         if out.chosen == "robust" or refitted or out.relocalized:  # (the anchor may move)
             final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
@@ -279,8 +280,8 @@ class RotationAverager:
                                  out.relocalized, trusted, pruned)
 
     def _refit_dmf(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-                   keep: BoolArray, current: FloatArray, cap: float, tolerance: float = 0.0
-                   ) -> FloatArray:
+                   keep: BoolArray, current: FloatArray, cap: float, tolerance: float = 0.0,
+                   warm: bool = False) -> FloatArray:
         """The filtered DMF again, on the edges ``keep``; ``current`` itself (the same
         object) if those do not connect every node or the refit's cost (the choice's, every
         edge capped at ``cap``) is more than ``tolerance`` (relative) above ``current``'s.
@@ -294,7 +295,8 @@ class RotationAverager:
         if np.any(labels != labels[0]):  # the inliers do not connect every node
             return current
         paper = RotationAverager(self.options.replace_flat(verify=False))
-        refit = paper.solve_component(n, i[keep], j[keep], R[keep], w[keep]).rotations
+        refit = paper.solve_component(n, i[keep], j[keep], R[keep], w[keep],
+                                      initial=current if warm else None).rotations
         # Judged by the same cap, every edge capped: on the same inliers, the question is
         # only which estimator fits the data better, not which edges to trust.
         if (truncated_l1(refit, i, j, R, w, cap)
@@ -351,7 +353,7 @@ class RotationAverager:
                 return fit_vanilla(n, i, j, R, w, dense, fit, report)
             if sparse and H0 is not None:
                 return fit_symmetric_lbfgs(n, i, j, R, w, opt.sparse, dense, fit, H0, delta,
-                                           progress=report)
+                                           progress=report, trusted_start=warm is not None)
             if warm is not None:  # a short fit from the warm start, no warm-up
                 short = replace(dense, iterations=opt.warm.iterations, lr=opt.warm.lr, warmup=0)
                 return fit_symmetric(n, i, j, R, w, short, fit, report, H0=warm)

@@ -17,11 +17,15 @@ from rotavg_ros.core.dmf.common import (
     soa_matmul,
     warm_factors,
 )
+from rotavg_ros.core.dmf.precondition import LaplacianPreconditioner
 from rotavg_ros.core.optim.factor_chain import FactorChain
 from rotavg_ros.core.optim.lbfgs import minimize_lbfgs
 from rotavg_ros.core.options import DenseFitOptions, SparseFitOptions
 from rotavg_ros.core.types import FloatArray, IntArray
 
+PRECONDITIONER_STEPS = 30
+"""Sparse mode, with :attr:`SparseFitOptions.precondition`: L-BFGS steps before the
+preconditioner is built again at the current factors."""
 LBFGS_FTOL = 1e-12
 """Sparse mode: an L-BFGS run ends when a step lowers the loss by less than this,
 relative to max(|loss|, 1)."""
@@ -37,6 +41,7 @@ def fit_symmetric_lbfgs(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     s: SparseFitOptions, model: DenseFitOptions, fit: FitSpec, H0: FloatArray,
     huber_delta: float, progress: Callable[[int, float], None] | None = None,
+    trusted_start: bool = False,
 ) -> DMFFit:
     """Sparse-graph variant: same H H^T model, entry-wise Huber loss, L-BFGS, warm start.
 
@@ -50,7 +55,9 @@ def fit_symmetric_lbfgs(
     are first scaled by sqrt(initial weight), so each edge is judged against its own
     stated noise level (SLAM graphs mix very different information matrices); the
     rounds stop early once no edge is above that threshold, or once a round moved the
-    factors by less than ``ROUND_TOLERANCE`` (relative).
+    factors by less than ``ROUND_TOLERANCE`` (relative). With ``trusted_start`` (``H0`` a
+    verified solution, not the chordal one) the weights are first updated at ``H0`` itself,
+    so the first run does not bend a good start towards the outliers.
 
     The optimiser is :func:`~rotavg_ros.core.optim.lbfgs.minimize_lbfgs` (float64, at most
     ``s.inner_iterations`` steps per round, ending early when a step improves the loss by
@@ -98,24 +105,66 @@ def fit_symmetric_lbfgs(
         chain.backward(h_t_from_nodes(grad))
         return float(loss), flat_grad.clone()
 
-    loss_val, total = float("nan"), 0
-    for rnd in range(s.rounds):
-        res = minimize_lbfgs(loss_and_grad, x, s.inner_iterations, ftol=LBFGS_FTOL)
-        moved = float((res.x - x).norm() / res.x.norm().clamp_min(1e-30))
-        x, loss_val, total = res.x, res.loss, total + res.iterations
-        if progress is not None:
-            progress(total, loss_val)
-        if not model.reweighting or rnd + 1 == s.rounds or (rnd > 0 and moved < ROUND_TOLERANCE):
-            break
+    def outlier_scale(x: torch.Tensor) -> torch.Tensor:
+        """Per edge, threshold / residual where the noise-scaled residual at ``x`` is above
+        ``s.outlier_factor`` x the median, else 1."""
         with torch.no_grad():
             flat.copy_(x)
             Hn = nodes_from_h_t(chain.forward())
             r = blocks.products(Hn)[2].sub_(tR).pow(2).sum(dim=(0, 1)).sqrt() * noise_scale
             thresh = s.outlier_factor * torch.median(r)
-            scale = torch.where(r > thresh, thresh / r.clamp_min(1e-12), torch.ones_like(r))
-            weights *= scale
-            if float((1.0 - scale).abs().max()) < 1e-3:
-                break  # no edge is an outlier any more: converged
+            return torch.where(r > thresh, thresh / r.clamp_min(1e-12), torch.ones_like(r))
+
+    def reweight(x: torch.Tensor) -> bool:
+        """Scale down the edges above the outlier threshold at ``x``; False if none is."""
+        scale = outlier_scale(x)
+        weights.mul_(scale)
+        return float((1.0 - scale).abs().max()) >= 1e-3
+
+    if trusted_start and model.reweighting:
+        reweight(x)  # a start that is already the answer's neighbourhood: judge by it
+    # The preconditioner's model holds near a solution: from a trusted start, or from a
+    # chordal one that shows no outlier (far from the answer, with outliers bending the
+    # start, it was slower per step and no faster to converge).
+    near = trusted_start or float((1.0 - outlier_scale(x)).abs().max()) < 1e-3
+
+    def preconditioner(x: torch.Tensor) -> LaplacianPreconditioner | None:
+        """The curvature at ``x`` as a graph Laplacian (depth 2 only: ``x`` is H)."""
+        if not (s.precondition and near) or len(shapes) != 1:
+            return None
+        with torch.no_grad():
+            flat.copy_(x)
+            Hn = nodes_from_h_t(chain.forward())
+            D = blocks.products(Hn)[2].sub_(tR).abs_()
+            # Huber's IRLS weight per entry, min(1/delta, 1/|r|), averaged over the block
+            curvature = weights * torch.minimum(1.0 / D.clamp_min(1e-300),
+                                                torch.full_like(D, 1.0 / delta)).mean(dim=(0, 1))
+            return LaplacianPreconditioner(
+                Hn.permute(2, 0, 1).cpu().numpy(), i, j, curvature.cpu().numpy(),
+                4.0 * s.diagonal_weight / delta)
+
+    loss_val, total = float("nan"), 0
+    for rnd in range(s.rounds):
+        round_start, used = x, 0
+        while used < s.inner_iterations:
+            # With a preconditioner, a fresh one (and a fresh L-BFGS history) every
+            # PRECONDITIONER_STEPS: it holds near the blocks it was built at.
+            pre = preconditioner(x)
+            budget = s.inner_iterations - used
+            if pre is not None:
+                budget = min(budget, PRECONDITIONER_STEPS)
+            res = minimize_lbfgs(loss_and_grad, x, budget, ftol=LBFGS_FTOL, precondition=pre)
+            x, loss_val, used = res.x, res.loss, used + res.iterations
+            if res.iterations < budget:
+                break  # converged (or no further progress)
+        moved = float((x - round_start).norm() / x.norm().clamp_min(1e-30))
+        total += used
+        if progress is not None:
+            progress(total, loss_val)
+        if not model.reweighting or rnd + 1 == s.rounds or (rnd > 0 and moved < ROUND_TOLERANCE):
+            break
+        if not reweight(x):
+            break  # no edge is an outlier any more: converged
     flat.copy_(x)
     H = chain.product().reshape(num_nodes, 3, 3)
     return DMFFit(H.cpu().numpy().copy(), weights.cpu().numpy(), loss_val, total)

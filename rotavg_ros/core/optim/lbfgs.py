@@ -6,10 +6,14 @@ whose worker threads spin-wait and collapse when the CPU is shared (a 1000-node 
 beside two busy processes: 11.4 s, against 4.6 s with one BLAS thread). Here every
 operation is a torch op, so ``torch.set_num_threads`` governs it like the rest of a fit.
 
-Method: the standard two-loop recursion over the last ``history`` pairs (Nocedal &
-Wright, Alg. 7.4) with the initial Hessian scaled by s^T y / y^T y, and a backtracking
-line search on the Armijo condition from step 1. Pairs with s^T y <= 1e-10 |s| |y| are
-not stored, so the implied Hessian stays positive definite without a Wolfe search.
+Method: L-BFGS (Nocedal & Wright, Sec. 7.2) with the initial Hessian scaled by
+s^T y / y^T y, and a backtracking line search on the Armijo condition from step 1. Pairs
+with s^T y <= 1e-10 |s| |y| are not stored, so the implied Hessian stays positive definite
+without a Wolfe search. The direction comes from the compact representation (Byrd, Nocedal
+& Schnabel 1994; N&W Eq. 7.24), the same matrix as the two-loop recursion: a handful of
+matrix-vector products with the stored pairs instead of 4m vector operations, each of which
+costs torch's per-call overhead (on a 5,000-node pose graph the two-loop recursion took 1.7
+ms of each 4 ms iteration).
 """
 
 from __future__ import annotations
@@ -34,32 +38,33 @@ class LBFGSResult:
 def minimize_lbfgs(
     loss_and_grad: LossAndGrad, x0: torch.Tensor, max_iterations: int, history: int = 20,
     ftol: float = 1e-12, armijo: float = 1e-4, max_backtracks: int = 30,
+    precondition: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> LBFGSResult:
     """Minimise a smooth function of the flat tensor ``x0`` (not modified).
 
     ``loss_and_grad(x)`` returns the loss and its gradient (a new tensor shaped like x).
     Stops after ``max_iterations`` steps, when a step lowers the loss by less than
     ``ftol * max(|loss|, 1)``, when the gradient vanishes, or when no step along the
-    search direction satisfies the Armijo condition.
+    search direction satisfies the Armijo condition. ``precondition`` (optional) applies
+    ``M^-1``, ``M`` an SPD estimate of the Hessian in the loss's own scale: it replaces the
+    identity as the initial inverse Hessian (scaled by s^T y / y^T M^-1 y), and the first
+    step is then the full ``-M^-1 g``.
     """
     x = x0.clone()
     f, g = loss_and_grad(x)
-    s_hist: list[torch.Tensor] = []
-    y_hist: list[torch.Tensor] = []
-    rho_hist: list[float] = []
+    pairs = CurvaturePairs(history, x, precondition)
     it = 0
     while it < max_iterations:
-        d = _direction(g, s_hist, y_hist, rho_hist)
+        d = pairs.direction(g)
         slope = float(g.dot(d))
         if slope >= 0.0:  # not a descent direction (numerical trouble): restart
-            s_hist.clear()
-            y_hist.clear()
-            rho_hist.clear()
+            pairs.clear()
             d = -g
             slope = -float(g.dot(g))
         if slope == 0.0:
             break  # zero gradient
-        step = 1.0 if s_hist else min(1.0, 1.0 / max(float(g.abs().sum()), 1e-30))
+        step = 1.0 if len(pairs) or precondition is not None else (
+            min(1.0, 1.0 / max(float(g.abs().sum()), 1e-30)))
         for _ in range(max_backtracks):
             x_new = x + step * d
             f_new, g_new = loss_and_grad(x_new)
@@ -68,14 +73,7 @@ def minimize_lbfgs(
             step *= 0.5
         else:
             break  # no acceptable step: as close as this search gets
-        s, y = x_new - x, g_new - g
-        sy = float(s.dot(y))
-        if sy > 1e-10 * float(s.norm() * y.norm()):
-            s_hist.append(s)
-            y_hist.append(y)
-            rho_hist.append(1.0 / sy)
-            if len(s_hist) > history:
-                del s_hist[0], y_hist[0], rho_hist[0]
+        pairs.add(x_new - x, g_new - g)
         decrease = f - f_new
         x, f, g = x_new, f_new, g_new
         it += 1
@@ -84,18 +82,65 @@ def minimize_lbfgs(
     return LBFGSResult(x, f, it)
 
 
-def _direction(g: torch.Tensor, s_hist: list[torch.Tensor], y_hist: list[torch.Tensor],
-               rho_hist: list[float]) -> torch.Tensor:
-    """-H g by the two-loop recursion (H: the L-BFGS inverse-Hessian estimate)."""
-    q = g.clone()
-    alphas = []
-    for s, y, rho in zip(reversed(s_hist), reversed(y_hist), reversed(rho_hist), strict=True):
-        a = rho * float(s.dot(q))
-        q.add_(y, alpha=-a)
-        alphas.append(a)
-    if s_hist:
-        q.mul_(1.0 / (rho_hist[-1] * float(y_hist[-1].dot(y_hist[-1]))))
-    for s, y, rho, a in zip(s_hist, y_hist, rho_hist, reversed(alphas), strict=True):
-        b = rho * float(y.dot(q))
-        q.add_(s, alpha=a - b)
-    return q.neg_()
+class CurvaturePairs:
+    """The last ``history`` curvature pairs ``(s, y)`` in fixed rows of two buffers, with
+    their Gram matrices ``S^T Y`` and ``Y^T M^-1 Y`` kept up to date one row and column per
+    new pair, so a direction costs a few matrix-vector products (and, with a
+    preconditioner ``M^-1``, one application to the gradient and one to each new ``y``)."""
+
+    def __init__(self, history: int, like: torch.Tensor,
+                 precondition: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
+        self.precondition = precondition
+        self.S = like.new_zeros(history, like.numel())
+        self.Y = like.new_zeros(history, like.numel())
+        self.MY = self.Y if precondition is None else like.new_zeros(history, like.numel())
+        self.SY = like.new_zeros(history, history)  # SY[a, b] = s_a . y_b (buffer rows)
+        self.YY = like.new_zeros(history, history)  # YY[a, b] = y_a . M^-1 y_b
+        self.order: list[int] = []  # buffer rows, oldest pair first
+
+    def __len__(self) -> int:
+        return len(self.order)
+
+    def clear(self) -> None:
+        self.order.clear()
+
+    def add(self, s: torch.Tensor, y: torch.Tensor) -> None:
+        """Store the pair unless ``s^T y <= 1e-10 |s| |y|`` (curvature too small)."""
+        sy = float(s.dot(y))
+        if not sy > 1e-10 * float(s.norm() * y.norm()):
+            return
+        history = self.S.shape[0]
+        row = self.order.pop(0) if len(self.order) == history else (
+            min(set(range(history)) - set(self.order)))
+        self.S[row] = s
+        self.Y[row] = y
+        if self.precondition is not None:
+            self.MY[row] = self.precondition(y)
+        self.SY[row] = self.Y @ s  # s_row . y_b
+        self.SY[:, row] = self.S @ y  # s_a . y_row
+        self.YY[row] = self.YY[:, row] = self.Y @ self.MY[row]
+        self.order.append(row)
+
+    def direction(self, g: torch.Tensor) -> torch.Tensor:
+        """``-H g``, ``H`` the L-BFGS inverse-Hessian estimate of the stored pairs
+        (``-M^-1 g`` when none is stored)."""
+        Mg = g if self.precondition is None else self.precondition(g)
+        if not self.order:
+            return -Mg
+        k = torch.tensor(self.order, device=g.device)
+        SY = self.SY[k][:, k]  # oldest pair first
+        last = self.order[-1]
+        gamma = float(self.SY[last, last] / self.YY[last, last])
+        Rt = torch.triu(SY)  # R: s_a . y_b for a <= b
+        u = (self.S @ g)[k]  # products with every buffer row: no copy of the pairs
+        v = gamma * (self.Y @ Mg)[k]
+        # H0 = gamma M^-1; H g = H0 g + [S, H0 Y] W [u; v] with
+        # W = [[R^-T (D + Y^T H0 Y) R^-1, -R^-T], [-R^-1, 0]] (N&W Eq. 7.24).
+        Ru = torch.linalg.solve_triangular(Rt, u[:, None], upper=True)[:, 0]  # R^-1 u
+        inner = torch.diagonal(SY) * Ru + gamma * (self.YY[k][:, k] @ Ru) - v
+        top = torch.linalg.solve_triangular(Rt.T, inner[:, None], upper=False)[:, 0]
+        cs = torch.zeros_like(self.SY[0])
+        cy = torch.zeros_like(self.SY[0])
+        cs[k] = top
+        cy[k] = -gamma * Ru
+        return -(gamma * Mg + cs @ self.S + cy @ self.MY)

@@ -8,8 +8,13 @@ right Jacobian of the log is taken as identity: exact at zero residual, and the 
 robust loss make large residuals irrelevant). Node 0 (the anchor) stays fixed.
 
 One step solves the 3N x 3N normal equations ``sum_e w_e A_e^T A_e d = -sum_e w_e A_e^T e``
-(sparse, SPD once the anchor is fixed) with the solver :class:`Factor` picks for the graph:
-dense Cholesky, Jacobi-preconditioned conjugate gradients or SuperLU.
+(SPD once the anchor is fixed). With ``A_e = [R_j R_i^T at i, -I at j]`` and the change of
+variables ``d_i = R_i v_i``, ``A_e d = R_j (v_i - v_j)``: the normal matrix is exactly
+``B (L kron I_3) B^T`` with ``B = blockdiag(R_i)`` and ``L`` the weighted graph Laplacian
+(N x N, scalar). So every solve is a solve with ``L`` on three right-hand sides per column,
+rotated in and out (:class:`Factor`), and ``L`` depends on the weights only: steps with the
+same weights share one factorization. ``L`` is solved by dense Cholesky, Jacobi-preconditioned
+conjugate gradients or SuperLU, by size and connectivity.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import coo_matrix, csr_matrix
-from scipy.sparse.linalg import LinearOperator, cg, splu
+from scipy.sparse.linalg import splu
 
 from rotavg_ros.core.so3 import exp_map, log_map, project_to_so3
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
@@ -37,35 +42,23 @@ def residual_angles(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray) ->
     return np.linalg.norm(edge_residuals(rot, i, j, R), axis=-1)
 
 
-def _assemble(rot: FloatArray, i: IntArray, j: IntArray, w: FloatArray
-              ) -> tuple[Any, FloatArray, IntArray]:
-    """``(H on the free coordinates (CSC), P^T per edge, free coordinates)``.
-
-    ``H = sum_e w_e A_e^T A_e`` with ``A_e = [P_e^T at i, -I at j]``, ``P_e = R_i R_j^T``;
-    the anchor (node 0) and nodes no weighted edge reaches are not free.
-    """
-    n = rot.shape[0]
-    Pt = rot[j] @ np.swapaxes(rot[i], 1, 2)  # P^T = R_j R_i^T
+def _laplacian(n: int, i: IntArray, j: IntArray, w: FloatArray) -> tuple[Any, IntArray]:
+    """``(L on the free nodes (CSC), free nodes)``: the weighted graph Laplacian, without
+    the anchor (node 0) and the nodes no weighted edge reaches (+ 1e-12 on the diagonal: no
+    exactly singular matrix)."""
     deg = np.bincount(i, w, n) + np.bincount(j, w, n)
     reached = deg > 0
     reached[0] = False  # the anchor is fixed
-    free = np.flatnonzero(np.repeat(reached, 3))
-    index = np.full(n, -1)  # node -> its first free coordinate
-    index[reached] = 3 * np.arange(int(reached.sum()))
-    # H_ii += w I, H_jj += w I (+ 1e-12 I: no exactly singular matrix), H_ij += -w P,
-    # H_ji += -w P^T, for the blocks between free nodes.
+    nodes = np.flatnonzero(reached)
+    index = np.full(n, -1)
+    index[nodes] = np.arange(nodes.size)
     both = (index[i] >= 0) & (index[j] >= 0)
-    a = np.arange(3)
-    rr = np.broadcast_to(index[i][both][:, None, None] + a[None, :, None], (both.sum(), 3, 3))
-    cc = np.broadcast_to(index[j][both][:, None, None] + a[None, None, :], (both.sum(), 3, 3))
-    off = -w[both][:, None, None] * np.swapaxes(Pt[both], 1, 2)  # -w P at (i, j)
-    diag = np.arange(free.size)
-    rows = np.concatenate([diag, rr.ravel(), cc.ravel()])
-    cols = np.concatenate([diag, cc.ravel(), rr.ravel()])
-    # The (j, i) block is the transpose of the (i, j) block: same values, swapped indices.
-    vals = np.concatenate([np.repeat(deg[reached], 3) + 1e-12, off.ravel(), off.ravel()])
-    Hf = coo_matrix((vals, (rows, cols)), shape=(free.size, free.size)).tocsc()
-    return Hf, Pt, free
+    a, b = index[i][both], index[j][both]
+    diag = np.arange(nodes.size)
+    L = coo_matrix((np.concatenate([deg[nodes] + 1e-12, -w[both], -w[both]]),
+                    (np.concatenate([diag, a, b]), np.concatenate([diag, b, a]))),
+                   shape=(nodes.size, nodes.size)).tocsc()
+    return L, nodes
 
 
 def scatter_add(index: IntArray, values: FloatArray, n: int) -> FloatArray:
@@ -78,37 +71,36 @@ def scatter_add(index: IntArray, values: FloatArray, n: int) -> FloatArray:
 
 
 class Factor:
-    """A solver for the normal matrix on the free coordinates ``free``: dense Cholesky for
-    small or dense systems, conjugate gradients for large well-connected ones, SuperLU
-    (symmetric mode) otherwise."""
+    """A solver for the graph Laplacian ``L`` on the free nodes ``nodes``: dense Cholesky
+    for small or dense graphs, conjugate gradients for large well-connected ones, SuperLU
+    (symmetric mode) otherwise. :meth:`normal` turns it into the normal matrix's solver."""
 
-    def __init__(self, Hf: Any, free: IntArray) -> None:
-        self.free = free
+    def __init__(self, L: Any, nodes: IntArray) -> None:
+        self.nodes = nodes
         self._dense = None
         self._lu = None
         self._matrix: Any = None  # conjugate gradients on this matrix
-        size = free.size
-        if size <= DENSE_MAX and (Hf.nnz > DENSE_FILL * size ** 2 or size <= DENSE_ALWAYS):
-            self._dense = cho_factor(Hf.toarray(), lower=True, check_finite=False)
-        elif (WELL_CONNECTED.get()
-              or Hf.nnz / size - 3.0 >= 3.0 * ITERATIVE_MIN_DEGREE):  # 3 entries per neighbour
-            self._matrix = Hf
-            self._inverse_diagonal = 1.0 / Hf.diagonal()
+        size = nodes.size
+        if size <= DENSE_MAX and (L.nnz > DENSE_FILL * size ** 2 or size <= DENSE_ALWAYS):
+            self._dense = cho_factor(L.toarray(), lower=True, check_finite=False)
+        elif WELL_CONNECTED.get() or L.nnz / size - 1.0 >= ITERATIVE_MIN_DEGREE:
+            self._matrix = L
+            self._inverse_diagonal = 1.0 / L.diagonal()
         else:
-            self._factor_sparse(Hf)
+            self._factor_sparse(L)
 
-    def _factor_sparse(self, Hf: Any) -> None:
-        self._lu = splu(Hf, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+    def _factor_sparse(self, L: Any) -> None:
+        self._lu = splu(L, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                         options={"SymmetricMode": True})
         self._matrix = None
 
     @property
     def sparse(self) -> bool:
-        """Whether this is a sparse factorization (worth reusing as a preconditioner)."""
+        """Whether this is a sparse factorization."""
         return self._lu is not None
 
     def solve(self, b: FloatArray) -> FloatArray:
-        """``H^-1 b`` for a vector or the columns of a matrix ``b``."""
+        """``L^-1 b`` for a vector or the columns of a matrix ``b``."""
         if self._dense is not None:
             return np.asarray(cho_solve(self._dense, b, check_finite=False))
         if self._matrix is not None:
@@ -120,16 +112,36 @@ class Factor:
         assert self._lu is not None
         return np.asarray(self._lu.solve(b))
 
+    def normal(self, rot: FloatArray) -> NormalSolver:
+        """The solver of the normal matrix ``B (L kron I_3) B^T`` at rotations ``rot``."""
+        return NormalSolver(self, rot[self.nodes])
 
-DENSE_MAX = 3000
-"""Free coordinates up to which a normal matrix with more than ``DENSE_FILL`` of its entries
-set is solved densely (Cholesky, 72 MB at most): random view graphs fill SuperLU's factors
-almost completely (1,000 nodes, 20,000 edges: 0.95 s per SuperLU factorization, 0.13 s
-dense), while chains and pose graphs stay sparse (a 300-keyframe chain: 50 ms dense, about
-1 ms sparse)."""
+
+class NormalSolver:
+    """``H^-1 b`` on the free coordinates (3 per free node, in node order), ``H`` the
+    normal matrix at the given rotations of the free nodes: ``B (L^-1 kron I_3) B^T b``."""
+
+    def __init__(self, laplacian: Factor, rot: FloatArray) -> None:
+        self.laplacian = laplacian
+        self._rot = rot
+        self.free = (3 * laplacian.nodes[:, None] + np.arange(3)).ravel()
+
+    def solve(self, b: FloatArray) -> FloatArray:
+        m = self._rot.shape[0]
+        B = b.reshape(m, 3, -1)
+        V = np.swapaxes(self._rot, 1, 2) @ B  # v_i = R_i^T b_i
+        X = self.laplacian.solve(V.reshape(m, -1)).reshape(V.shape)
+        return (self._rot @ X).reshape(b.shape)
+
+
+DENSE_MAX = 1000
+"""Free nodes up to which a Laplacian with more than ``DENSE_FILL`` of its entries set is
+solved densely (Cholesky, 8 MB at most): random view graphs fill SuperLU's factors almost
+completely, while chains and pose graphs stay sparse. (The same sizes as when the 3N x 3N
+normal matrix itself was factored: 3,000 and 300 coordinates.)"""
 DENSE_FILL = 0.02
-DENSE_ALWAYS = 300
-"""Free coordinates up to which every normal matrix is solved densely (a few ms)."""
+DENSE_ALWAYS = 100
+"""Free nodes up to which every Laplacian is solved densely (well under a millisecond)."""
 ITERATIVE_MIN_DEGREE = 10.0
 """Above ``DENSE_MAX``: mean number of weighted edges per node from which the normal matrix
 is solved by Jacobi-preconditioned conjugate gradients instead of SuperLU. A graph this
@@ -184,23 +196,26 @@ def jacobi_pcg(A: Any, b: FloatArray, inverse_diagonal: FloatArray, rtol: float,
 
 
 def _normal_matrix(rot: FloatArray, i: IntArray, j: IntArray, w: FloatArray
-                   ) -> tuple[Factor | None, FloatArray, IntArray]:
-    """``(factor of H on the free coordinates, P^T per edge, free coordinates)``."""
-    Hf, Pt, free = _assemble(rot, i, j, w)
-    return (Factor(Hf, free) if free.size else None), Pt, free
+                   ) -> tuple[NormalSolver | None, FloatArray, IntArray]:
+    """``(solver of the normal matrix on the free coordinates, P^T per edge, free
+    coordinates)``; ``P^T = R_j R_i^T``."""
+    L, nodes = _laplacian(rot.shape[0], i, j, w)
+    Pt = rot[j] @ np.swapaxes(rot[i], 1, 2)
+    if not nodes.size:
+        return None, Pt, (3 * nodes[:, None] + np.arange(3)).ravel()
+    solver = Factor(L, nodes).normal(rot)
+    return solver, Pt, solver.free
 
 
 def gauss_newton_step(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-    precondition: Factor | None = None,
+    laplacian: Factor | None = None,
 ) -> tuple[FloatArray, Factor | None]:
-    """One Gauss-Newton step of ``min sum_e w_e |e_e|^2``: the new rotations and the factor
-    of the normal matrix it used.
+    """One Gauss-Newton step of ``min sum_e w_e |e_e|^2``: the new rotations and the
+    factor of the graph Laplacian it used.
 
-    With ``precondition`` (the factor of an earlier, similar step, e.g. the previous
-    iteration's) the step is solved by conjugate gradients preconditioned with it, which
-    costs a few triangular solves instead of a factorization; if that does not converge
-    (the matrix moved too far), the step factors afresh. Edges with ``w_e = 0`` take no
+    ``laplacian``: that of an earlier step with the same weights ``w`` (it depends on
+    nothing else), reused instead of a new factorization. Edges with ``w_e = 0`` take no
     part; nodes no weighted edge reaches keep their rotation.
     """
     n = rot.shape[0]
@@ -209,32 +224,20 @@ def gauss_newton_step(
     if n < 2 or i.size == 0:
         return rot.copy(), None
     e = edge_residuals(rot, i, j, R)
-    Hf, Pt, free = _assemble(rot, i, j, w)
-    if free.size == 0:
-        return rot.copy(), None
-    # Gradient: b_i += w P e, b_j -= w e.
-    Pe = (e[:, None, :] @ Pt)[:, 0, :]  # P e = (P^T)^T e
+    if laplacian is None:
+        L, nodes = _laplacian(n, i, j, w)
+        if nodes.size == 0:
+            return rot.copy(), None
+        laplacian = Factor(L, nodes)
+    solver = laplacian.normal(rot)
+    # Gradient: b_i += w P e, b_j -= w e, with P e = (P^T)^T e, P^T = R_j R_i^T.
+    Pt = rot[j] @ np.swapaxes(rot[i], 1, 2)
+    Pe = (e[:, None, :] @ Pt)[:, 0, :]
     b = scatter_add(i, w[:, None] * Pe, n) - scatter_add(j, w[:, None] * e, n)
-    rhs = -b.reshape(-1)[free]
-    x = None
-    factor = precondition
-    # A dense factor is cheap to redo and expensive to apply n times: CG only with SuperLU.
-    if factor is not None and factor.sparse and np.array_equal(factor.free, free):
-        M = LinearOperator(Hf.shape, matvec=factor.solve, dtype=np.float64)
-        x, info = cg(Hf, rhs, rtol=1e-8, atol=0.0, maxiter=CG_MAX_ITERATIONS, M=M)
-        if info != 0:
-            x = None
-    if x is None:
-        factor = Factor(Hf, free)
-        x = factor.solve(rhs)
     d = np.zeros(3 * n)
-    d[free] = x
+    d[solver.free] = solver.solve(-b.reshape(-1)[solver.free])
     step = exp_map(d.reshape(n, 3))
-    return project_to_so3(step @ rot), factor
-
-
-CG_MAX_ITERATIONS = 30
-"""Preconditioned conjugate-gradient iterations before a step factors afresh."""
+    return project_to_so3(step @ rot), laplacian
 
 
 def prediction_variance(
@@ -246,11 +249,16 @@ def prediction_variance(
 
     In units of the noise variance of a unit-weight edge: an edge in the fit has leverage
     ``w_e q_e`` (its residual variance shrinks by ``1 - w_e q_e``), an edge outside it is
-    predicted with variance ``1 / w_e + q_e``. Probes ``z = H^-1 A^T W^(1/2) g`` with
-    ``g ~ N(0, I)`` have covariance ``H^-1``, so ``E |A_e z|^2 = tr(A_e H^-1 A_e^T)``
-    (about 15% relative error with 32 probes). Edges marked in ``exact`` get ``q_e`` from
-    three solves each instead (needed where the leverage is close to 1); ``exact`` may be a
-    function of the probe estimates that returns the mask (one factorization serves both).
+    predicted with variance ``1 / w_e + q_e``. Since ``H = B (L kron I_3) B^T`` (module
+    docstring), ``q_e`` is the effective resistance ``(u_i - u_j)^T L^-1 (u_i - u_j)``
+    between the edge's ends in the weighted graph (``u_k``: unit vectors, the anchor's
+    zero): it depends on the weights only, not on ``rot`` (which gives the node count).
+    Probes ``z = L^-1 B^T W^(1/2) g`` with ``g ~ N(0, I)`` have covariance ``L^-1``, so
+    ``E (z_i - z_j)^2 = q_e``; ``3 probes`` of them (the 3 columns per probe of the
+    rotation-block form) give about 15% relative error. Edges marked in ``exact`` get
+    ``q_e`` from one solve each instead (needed where the leverage is close to 1); ``exact``
+    may be a function of the probe estimates that returns the mask (one factorization
+    serves both).
     """
     n = rot.shape[0]
     q = np.zeros(i.size)
@@ -258,55 +266,43 @@ def prediction_variance(
     if n < 2 or not active.any():
         return q
     ai, aj, aw = i[active], j[active], w[active]
-    lu, Pt_active, free = _normal_matrix(rot, ai, aj, aw)
-    if lu is None:
+    L, nodes = _laplacian(n, ai, aj, aw)
+    if not nodes.size:
         return q
+    laplacian = Factor(L, nodes)
+    index = np.full(n, -1)
+    index[nodes] = np.arange(nodes.size)
     rng = np.random.default_rng(seed)
-    g = rng.standard_normal((ai.size, 3, probes)) * np.sqrt(aw)[:, None, None]
-    b = scatter_add(ai, np.swapaxes(Pt_active, 1, 2) @ g, n) - scatter_add(aj, g, n)  # P g
-    z = np.zeros((3 * n, probes))
-    z[free] = lu.solve(np.ascontiguousarray(b.reshape(3 * n, probes)[free]))
-    z3 = z.reshape(n, 3, probes)
-    Pt = rot[j] @ np.swapaxes(rot[i], 1, 2)
-    Az = Pt @ z3[i] - z3[j]
-    q = np.mean(np.sum(Az * Az, axis=1), axis=1) / 3.0
+    g = rng.standard_normal((ai.size, 3 * probes)) * np.sqrt(aw)[:, None]
+    b = scatter_add(ai, g, n) - scatter_add(aj, g, n)  # B^T W^(1/2) g
+    z = np.zeros((n, 3 * probes))
+    z[nodes] = laplacian.solve(np.ascontiguousarray(b[nodes]))
+    diff = z[i] - z[j]
+    q = np.mean(diff * diff, axis=1)
     if callable(exact):
         exact = exact(q)
     if exact is not None and exact.any():
-        q[exact] = _exact_prediction_variance(lu, free, n, Pt[exact], i[exact], j[exact])
+        q[exact] = _effective_resistance(laplacian, index, i[exact], j[exact])
     return q
 
 
-def _exact_prediction_variance(lu: Any, free: IntArray, n: int, Pt: FloatArray,
-                               i: IntArray, j: IntArray, batch: int = 32) -> FloatArray:
-    """``tr(A_e H^-1 A_e^T) / 3`` by solving ``H X = A_e^T`` for each edge's 3 columns."""
+def _effective_resistance(laplacian: Factor, index: IntArray, i: IntArray, j: IntArray,
+                          batch: int = 96) -> FloatArray:
+    """``(u_i - u_j)^T L^-1 (u_i - u_j)`` by one solve per edge; ``index``: node -> row of
+    ``L`` (-1: the anchor or an unreached node, whose potential is 0)."""
     out = np.empty(i.size)
-    index = np.full(3 * n, -1)
-    index[free] = np.arange(free.size)
+    size = laplacian.nodes.size
     for lo in range(0, i.size, batch):
         sl = slice(lo, min(lo + batch, i.size))
-        m = sl.stop - lo
-        rhs = np.zeros((free.size, 3 * m))
-        for a in range(3):
-            for b in range(3):  # column 3k+b of A_e^T: P[:, b] at node i, -e_b at node j
-                ri = index[3 * i[sl] + a]
-                ok = ri >= 0
-                rhs[ri[ok], (3 * np.arange(m) + b)[ok]] += Pt[sl][ok, b, a]
-            rj = index[3 * j[sl] + a]
-            ok = rj >= 0
-            rhs[rj[ok], (3 * np.arange(m) + a)[ok]] -= 1.0
-        x = lu.solve(rhs)
-        # A_e x = P^T x_i - x_j, for the three columns; trace over the 3 x 3 result.
-        xi = np.zeros((m, 3, 3))
-        xj = np.zeros((m, 3, 3))
-        for a in range(3):
-            ri = index[3 * i[sl] + a]
-            rj = index[3 * j[sl] + a]
-            cols = 3 * np.arange(m)[:, None] + np.arange(3)[None, :]
-            xi[:, a, :] = np.where((ri >= 0)[:, None], x[np.maximum(ri, 0)[:, None], cols], 0.0)
-            xj[:, a, :] = np.where((rj >= 0)[:, None], x[np.maximum(rj, 0)[:, None], cols], 0.0)
-        Ax = Pt[sl] @ xi - xj
-        out[sl] = np.trace(Ax, axis1=1, axis2=2) / 3.0
+        cols = np.arange(sl.stop - lo)
+        ri, rj = index[i[sl]], index[j[sl]]
+        rhs = np.zeros((size, cols.size))
+        rhs[ri[ri >= 0], cols[ri >= 0]] += 1.0
+        rhs[rj[rj >= 0], cols[rj >= 0]] -= 1.0
+        x = laplacian.solve(rhs)
+        xi = np.where(ri >= 0, x[np.maximum(ri, 0), cols], 0.0)
+        xj = np.where(rj >= 0, x[np.maximum(rj, 0), cols], 0.0)
+        out[sl] = xi - xj
     return out
 
 
@@ -318,9 +314,9 @@ def refine_least_squares(
 
     Stops when the largest update is below ``tolerance`` radians.
     """
-    factor: Factor | None = None
+    laplacian: Factor | None = None  # the weights stay: one factorization serves
     for _ in range(iterations):
-        new, factor = gauss_newton_step(rot, i, j, R, w, factor)
+        new, laplacian = gauss_newton_step(rot, i, j, R, w, laplacian)
         moved = np.linalg.norm(log_map(new @ np.swapaxes(rot, 1, 2)), axis=-1)
         rot = new
         if moved.size == 0 or float(moved.max()) < tolerance:

@@ -65,12 +65,12 @@ def gnc_tls(
         mu = max(1.0 / max(2.0 * r_max2 - 1.0, 1e-12), 1e-6)
     gw = np.ones(i.size)
     steps = 0
-    factor: Factor | None = None  # each stage preconditions the next one's solve
     while True:
         gw = np.ones(i.size) if not np.isfinite(mu) else tls_weights(r, 1.0, mu)
         gw[known] = 1.0
+        laplacian: Factor | None = None  # one per stage: the stage's weights
         for _ in range(gn_iterations):
-            rot, factor = gauss_newton_step(rot, i, j, R, w * gw, factor)
+            rot, laplacian = gauss_newton_step(rot, i, j, R, w * gw, laplacian)
         r = residual_angles(rot, i, j, R) / c
         steps += 1
         binary = bool(np.all((gw == 0.0) | (gw == 1.0)))
