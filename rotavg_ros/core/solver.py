@@ -254,8 +254,7 @@ class RotationAverager:
         final = out.rotations
         inlier = out.inlier if out.classified is None else out.classified
         if out.chosen == "robust":
-            final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap,
-                                    warm=sparse)
+            final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap)
         elif sparse and np.any(out.inlier & ~inlier):
             # Sparse mode's Huber fit gives gross outliers an L1 say; where its own
             # residuals show some, fit it again without them, and keep that unless it
@@ -288,7 +287,9 @@ class RotationAverager:
 
         After a robust re-solve: the least-squares re-solve found the inliers; the DMF's
         entry-wise L1 fit with reweighting is the more accurate estimator on them (the
-        benchmark's oracle row is exactly this fit on the true edges).
+        benchmark's oracle row is exactly this fit on the true edges), from its own start.
+        ``warm``: the refit continues from ``current`` (a kept DMF solution, fitted again
+        without the outliers it shows) instead of a new start.
         """
         labels = connected_components(coo_matrix(
             (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
