@@ -1,7 +1,8 @@
 """Deep matrix factorization of the observed rotation blocks (Sec. IV-B to IV-D).
 
 :mod:`.dense` is the paper's fit (Adam), :mod:`.sparse` the L-BFGS fit for chain-like
-graphs, :mod:`.vanilla` ablation (c); :mod:`.common` holds what they share. The options
+graphs (:mod:`.precondition` its preconditioner), :mod:`.vanilla` ablation (c);
+:mod:`.common` holds what they share. The options
 are :class:`~rotavg_ros.core.options.DenseFitOptions` and
 :class:`~rotavg_ros.core.options.SparseFitOptions`; :class:`FitSpec` carries what differs
 between the fits of one solve; :mod:`.race` stops the candidates that have clearly lost.

@@ -248,6 +248,33 @@ def log_likelihood_of(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
     return log_likelihood(r, model), model
 
 
+def robust_solutions(
+    i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, starts: dict[str, FloatArray],
+    threshold: float,
+) -> dict[str, tuple[FloatArray, BoolArray]]:
+    """``name -> (rotations, inliers)``: GNC-TLS at ``threshold`` (radians) from each distinct
+    start, then least squares on its inliers (a start equal to an earlier one is skipped)."""
+    solutions: dict[str, tuple[FloatArray, BoolArray]] = {}
+    seen: list[FloatArray] = []
+    for name, rotations in starts.items():
+        if any(np.allclose(rotations, other, atol=1e-9) for other in seen):
+            continue  # the same start twice (a chain's spanning tree is the chain)
+        seen.append(rotations)
+        g = gnc_tls(rotations, i, j, R, w, threshold)
+        inlier = g.weights > 0
+        solutions[name] = (refine_least_squares(g.rotations, i, j, R, w * inlier), inlier)
+    return solutions
+
+
+def most_likely(solutions: dict[str, tuple[FloatArray, BoolArray]], i: IntArray,
+                j: IntArray, R: FloatArray, w: FloatArray, max_threshold: float) -> str:
+    """The name of the solution whose residuals are most likely under the inlier/outlier
+    mixture fitted to them."""
+    scored = {k: log_likelihood_of(v[0], i, j, R, w, max_threshold)[0]
+              for k, v in solutions.items()}
+    return max(scored, key=lambda k: scored[k])
+
+
 def _well_connected_graphs_solved_iteratively(
     solve: Callable[Concatenate[int, IntArray, P], VerifyOutcome],
 ) -> Callable[Concatenate[int, IntArray, P], VerifyOutcome]:
@@ -296,22 +323,14 @@ def verify(
 
     tree = chain_tree(num_nodes, i, j, w)
     chain_rot = tree_rotations(i, j, R, np.flatnonzero(tree), num_nodes)
-    solutions: dict[str, tuple[FloatArray, BoolArray]] = {}
-    seen: list[FloatArray] = []
     # The chain start is the odometry's rotations; without odometry it is one more
     # arbitrary spanning tree, and the caller's tree (the filter's) is start enough. (On the
     # 9 SfM regime cases the chain start never won; skipping it saves a third of the
     # GNC time there.)
     chain = {"chain": chain_rot} if odometry.any() or not starts else {}
-    others = {"dmf": dmf_rotations, **chain, **starts}
-    for name, rotations in others.items():
-        if any(np.allclose(rotations, other, atol=1e-9) for other in seen):
-            continue  # the same start twice (a chain's spanning tree is the chain)
-        seen.append(rotations)
-        solutions[name] = robust_from(rotations)
-    scored = {k: log_likelihood_of(v[0], i, j, R, w, max_threshold)[0]
-              for k, v in solutions.items()}
-    start = max(scored, key=lambda k: scored[k])
+    solutions = robust_solutions(i, j, R, w, {"dmf": dmf_rotations, **chain, **starts},
+                                 initial_threshold)
+    start = most_likely(solutions, i, j, R, w, max_threshold)
     rot, inlier = solutions[start]
     rot, inlier, noise, t = _settle(rot, i, j, R, w, inlier, known, tree, rounds,
                                     max_threshold, initial_threshold)
