@@ -13,7 +13,6 @@ from rotavg_ros.core.robust import gauss_newton
 from rotavg_ros.core.robust.gauss_newton import (
     Factor,
     _laplacian,
-    _normal_matrix,
     jacobi_pcg,
     prediction_variance,
     refine_least_squares,
@@ -96,13 +95,19 @@ def _explicit_normal_matrix(rot: np.ndarray, i: np.ndarray, j: np.ndarray, w: np
     return H
 
 
+def _random_graph(n: int, density: float, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random rotations and a random set of a ``density`` fraction of all node pairs."""
+    rot = random_rotations(n, rng)
+    ii, jj = np.triu_indices(n, 1)
+    keep = rng.random(ii.size) < density
+    return rot, ii[keep], jj[keep]
+
+
 def test_prediction_variance_matches_the_inverse() -> None:
     rng = np.random.default_rng(1)
     n = 12
-    rot = random_rotations(n, rng)
-    ii, jj = np.triu_indices(n, 1)
-    keep = rng.random(ii.size) < 0.5
-    i, j = ii[keep], jj[keep]
+    rot, i, j = _random_graph(n, 0.5, rng)
     w = np.where(np.arange(i.size) % 5 == 0, 0.0, 1.0 + rng.random(i.size))
     H = _explicit_normal_matrix(rot, i, j, w)[3:, 3:]  # node 0 fixed
     Hinv = np.zeros((3 * n, 3 * n))
@@ -127,13 +132,10 @@ def test_normal_matrix_is_the_rotated_laplacian() -> None:
     out) solves the normal equations assembled from their definition."""
     rng = np.random.default_rng(4)
     n = 30
-    rot = random_rotations(n, rng)
-    ii, jj = np.triu_indices(n, 1)
-    keep = rng.random(ii.size) < 0.2
-    i, j = ii[keep], jj[keep]
+    rot, i, j = _random_graph(n, 0.2, rng)
     w = 0.5 + rng.random(i.size)
-    solver, _, free = _normal_matrix(rot, i, j, w)
-    assert solver is not None
+    solver = Factor(*_laplacian(n, i, j, w)).normal(rot)
+    free = solver.free
     H = _explicit_normal_matrix(rot, i, j, w)[np.ix_(free, free)]
     b = rng.normal(size=(free.size, 3))
     np.testing.assert_allclose(solver.solve(b), np.linalg.solve(H, b), rtol=1e-8, atol=1e-10)

@@ -195,18 +195,6 @@ def jacobi_pcg(A: Any, b: FloatArray, inverse_diagonal: FloatArray, rtol: float,
     return x.reshape(b.shape) if np.all(np.linalg.norm(r, axis=0) <= rtol * scale) else None
 
 
-def _normal_matrix(rot: FloatArray, i: IntArray, j: IntArray, w: FloatArray
-                   ) -> tuple[NormalSolver | None, FloatArray, IntArray]:
-    """``(solver of the normal matrix on the free coordinates, P^T per edge, free
-    coordinates)``; ``P^T = R_j R_i^T``."""
-    L, nodes = _laplacian(rot.shape[0], i, j, w)
-    Pt = rot[j] @ np.swapaxes(rot[i], 1, 2)
-    if not nodes.size:
-        return None, Pt, (3 * nodes[:, None] + np.arange(3)).ravel()
-    solver = Factor(L, nodes).normal(rot)
-    return solver, Pt, solver.free
-
-
 def gauss_newton_step(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     laplacian: Factor | None = None,
