@@ -252,7 +252,7 @@ class RotationAverager:
         # The edges the kept solution explains: the re-solve's inliers, or those the noise
         # model fitted to the DMF solution's own residuals calls inliers.
         final = out.rotations
-        inlier = out.inlier if out.classified is None else out.classified
+        inlier = out.classified
         if out.chosen == "robust":
             final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap)
         elif sparse and np.any(out.inlier & ~inlier):
@@ -268,7 +268,7 @@ class RotationAverager:
         if out.chosen == "robust" or refitted or out.relocalized:  # (the anchor may move)
             final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
             final[0] = np.eye(3)
-        trusted = int(out.known.sum()) if out.known is not None else 0
+        trusted = int(out.known.sum())
         self._say(f"verification: kept the {out.chosen} solution"
                   f"{' (DMF refit)' if refitted else ''}, noise "
                   f"{out.noise.sigma_deg:.2f} deg per axis, {int((~inlier).sum())} "

@@ -91,16 +91,16 @@ class VerifyOutcome:
     """``"dmf"`` (the filtered-DMF solution stands) or ``"robust"`` (the re-solve)."""
     costs: dict[str, float]
     start: str
-    untested: int = 0
+    untested: int
     """Loop closures (edges off the chain tree) whose residual nothing could check: their
     leverage under the kept solution's fit is 1 (no other path constrains them)."""
-    cap: float = math.pi
+    cap: float
     """Cap of an edge's say in the choice's truncated L1 cost (``costs``), radians."""
-    relocalized: int = 0
+    relocalized: int
     """Node moves of :func:`~.relocalize.relocalize_nodes` in the kept re-solve."""
-    known: BoolArray | None = None
+    known: BoolArray
     """The trusted (odometry) edges: known inliers of the re-solve, uncapped in ``costs``."""
-    classified: BoolArray | None = None
+    classified: BoolArray
     """Edges the noise model fitted to the kept solution's own residuals classifies as
     inliers (with the trusted ones): for ``dmf``, the filter's edges minus those the DMF
     solution itself shows to be outliers."""
