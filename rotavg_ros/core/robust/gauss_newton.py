@@ -127,6 +127,7 @@ class NormalSolver:
         self.free = (3 * laplacian.nodes[:, None] + np.arange(3)).ravel()
 
     def solve(self, b: FloatArray) -> FloatArray:
+        """``H^-1 b`` for a vector or the columns of a matrix ``b`` (free coordinates)."""
         m = self._rot.shape[0]
         B = b.reshape(m, 3, -1)
         V = np.swapaxes(self._rot, 1, 2) @ B  # v_i = R_i^T b_i
@@ -143,10 +144,11 @@ DENSE_FILL = 0.02
 DENSE_ALWAYS = 100
 """Free nodes up to which every Laplacian is solved densely (well under a millisecond)."""
 ITERATIVE_MIN_DEGREE = 10.0
-"""Above ``DENSE_MAX``: mean number of weighted edges per node from which the normal matrix
-is solved by Jacobi-preconditioned conjugate gradients instead of SuperLU. A graph this
+"""Above ``DENSE_MAX``: mean number of weighted edges per node from which the Laplacian is
+solved by Jacobi-preconditioned conjugate gradients instead of SuperLU. A graph this
 well connected (an SfM view graph; the solver's dense-mode threshold) fills SuperLU's
-factors (2,000 nodes, 20,000 edges: 4.3 s per factorization) but is well conditioned:
+factors (2,000 nodes, 20,000 edges, when the 3N x 3N matrix was factored: 4.3 s per
+factorization) but is well conditioned:
 CG converges in a few dozen products with the sparse matrix. Chains and pose graphs
 (degree 2-5) are the other way round. A CG that does not converge falls back to SuperLU."""
 WELL_CONNECTED: ContextVar[bool] = ContextVar("WELL_CONNECTED", default=False)
