@@ -47,8 +47,7 @@ def record_choices(case_name: str, shared: Any) -> list[Trace]:
         if sparse or warm is not None:
             return original(self, n, i, j, R, w, sparse, warm, warm_depth)
         dense = self.options.dense
-        width = dense.hidden_width or (3 * n if n <= dense.max_full_width_nodes
-                                       else dense.scalable_width)
+        width = dense.width_for(n)
         fits, trace = {}, {}
         for depth in dense.depths:
             costs: dict[int, float] = {}

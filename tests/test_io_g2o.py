@@ -90,6 +90,14 @@ def test_the_first_bad_line_in_the_file_is_the_one_reported(tmp_path: Path,
     with pytest.raises(G2oFormatError, match="positive definite") as info:
         read_g2o(_write(tmp_path, "\n".join([good, indefinite, non_unit])))
     assert info.value.line == 2
+    not_a_number = "EDGE_SE3:QUAT 4 5 0 0 0 0 0 zero 1"
+    infinite = "EDGE_SE3:QUAT 4 5 0 inf 0 0 0 0 1"
+    for first, second, line, fragment in [(non_unit, not_a_number, 2, "not 1"),
+                                          (not_a_number, non_unit, 2, "not a number"),
+                                          (good, infinite, 3, "non-finite")]:
+        with pytest.raises(G2oFormatError, match=fragment) as info:
+            read_g2o(_write(tmp_path, "\n".join([good, first, second, malformed])))
+        assert info.value.line == line
 
 
 def test_unknown_tag_skipped_when_not_strict(tmp_path: Path) -> None:

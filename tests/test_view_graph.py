@@ -149,6 +149,26 @@ def test_add_edges_vectorised_and_length_check() -> None:
         g.add_edges([0, 1], [1], Rs[:2])
 
 
+def test_add_edges_matches_one_call_per_edge() -> None:
+    """Node order, orientation, copies and the first invalid edge as one call each."""
+    rng = np.random.default_rng(7)
+    ids_i, ids_j = ["c", "a", "b", "d", "a"], ["a", "b", "c", "c", "d"]
+    Rs, w = random_rotations(5, rng), rng.uniform(0.5, 2.0, 5)
+    bulk, single = ViewGraph(), ViewGraph()
+    bulk.add_edges(ids_i, ids_j, Rs, w)
+    for a, b, Rk, wk in zip(ids_i, ids_j, Rs, w, strict=True):
+        single.add_edge(a, b, Rk, float(wk))
+    assert bulk.node_ids == single.node_ids == ["c", "a", "b", "d"]
+    for x, y in zip(bulk.measurement_arrays(), single.measurement_arrays(), strict=True):
+        np.testing.assert_array_equal(x, y)
+    Rs[0] = 0.0  # the graph keeps its own copy
+    assert np.all(bulk.measurement_arrays()[2][0] != 0.0)
+    bad = ViewGraph()
+    with pytest.raises(ValueError, match="self-loop"):
+        bad.add_edges([0, 1, 2, 3], [1, 2, 2, 4], random_rotations(4, rng))
+    assert bad.num_measurements == 2 and bad.node_ids == [0, 1, 2]
+
+
 def test_components() -> None:
     g = ViewGraph()
     g.add_edge("a", "b", np.eye(3))

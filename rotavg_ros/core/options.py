@@ -82,20 +82,20 @@ class DenseFitOptions:
     fit counts as converged (``patience`` times in a row, after the warm-up); 0 = run every
     iteration. On Ellis Island the depth-2 fit stops after about 600 of 1000 iterations
     (mean error +0.007 deg); deeper fits converge later and mostly run to the end."""
-    dense_product_density: float | None = None
+    dense_product_density: float | None = 0.35
     """CPU: evaluate the loss and its gradient from the whole ``H H^T`` (two 3N x 3N
     matrix products) instead of gathering the observed blocks, when at least this fraction
     of the node pairs carries an edge and there are at most ``dense_product_max_nodes``
-    nodes; None: always gather. The same loss and gradient to float32 rounding, and
-    faster on small dense graphs (depth 2, one thread, CPU time per iteration dense /
-    gathered): 100 nodes 0.39 at 53% of the pairs observed, 0.45 at 32%; 227 (Ellis
-    Island) 0.47 at 78%, 0.54 at 54% (filtered), 0.74 at 39%, about 1 at 31%, 1.10 at 23%;
-    300 nodes 0.59 at 51%, 0.81 at 34%; 400 nodes 0.8-1.0 at 50%, 1.17 at 30%, 4.1 at 10%;
-    1000 nodes 2.3 at 50%. So 0.35 would suit; it cut the DMF CPU time of an Ellis Island
-    solve by 14%. Off by default: the rounding differences grow over a fit enough to flip
-    near-tied depth choices (Ellis + 15% false edges, paper profile: depth 6 -> 2, mean
-    error 3.915 -> 4.315 deg; Ellis Island 2.274/0.397 -> 2.276/0.396 deg), i.e. it
-    changes recorded results the way a different seed does."""
+    nodes; None: always gather (profile ``paper``). The same loss and gradient to float32
+    rounding, and faster on small dense graphs (depth 2, one thread, CPU time per
+    iteration dense / gathered): 100 nodes 0.39 at 53% of the pairs observed, 0.45 at 32%;
+    227 (Ellis Island) 0.47 at 78%, 0.54 at 54% (filtered), 0.74 at 39%, about 1 at 31%,
+    1.10 at 23%; 300 nodes 0.59 at 51%, 0.81 at 34%; 400 nodes 0.8-1.0 at 50%, 1.17 at
+    30%, 4.1 at 10%; 1000 nodes 2.3 at 50%. The rounding differences grow over a fit and
+    can flip a near-tied depth choice, as another seed does; over seeds 0-3 (with
+    ``max_full_width_nodes`` = 0) the errors stayed within the spread between seeds
+    (Ellis + 30% mean 4.08 against 4.10 gathered, N = 100/10% median 0.143 against
+    0.143; Ellis Island 2.210 / 0.395 against 2.209 / 0.393 at seed 0)."""
     dense_product_max_nodes: int = 300
     """Largest graph for ``dense_product_density``: the 3N x 3N matrices outgrow the CPU
     caches (at 400 nodes the two ways cost the same at 50% observed)."""
@@ -126,10 +126,26 @@ class DenseFitOptions:
     explicit_constraint: bool = True
     """Rank-3 symmetric H H^T (ablation (c): vanilla 3N x 3N factors + eigendecomposition)."""
     hidden_width: int | None = None
-    """Width of the hidden factors; None = 3N (the paper) up to ``max_full_width_nodes``,
-    ``scalable_width`` above."""
-    max_full_width_nodes: int = 300
+    """Width of the hidden factors; None: :meth:`width_for` decides."""
+    max_full_width_nodes: int = 0
+    """Graphs of at most this many nodes get the paper's full width 3N (profile ``paper``:
+    300); larger ones ``min(3N, scalable_width)``. The width only matters at depth 4 and
+    more (depth 2 has no hidden factor). Evidence for 0 (beyond the paper): on the dense
+    regime cases below 300 nodes (Ellis Island, + 15%, + 30%, synthetic N = 100 with 10%
+    and 50% outliers), seeds 0-3, width 64 gave the same errors as 3N to within the
+    spread between seeds (Ellis Island bit-identical, depth 2 chosen; Ellis + 30% mean
+    over seeds 4.10 with 3N, 3.95 with 64; N = 100/10%: median 0.143 and 0.144), and cut
+    the DMF time by a third or more (Ellis Island solve 6.2 -> 3.9 s): a 3N x 3N factor
+    makes every Adam step memory-bound."""
     scalable_width: int = 64
+
+    def width_for(self, num_nodes: int) -> int:
+        """Hidden width of the factors for a component of ``num_nodes`` nodes."""
+        if self.hidden_width is not None:
+            return self.hidden_width
+        full = 3 * num_nodes
+        return full if num_nodes <= self.max_full_width_nodes else min(full,
+                                                                        self.scalable_width)
 
 
 @dataclass
@@ -230,11 +246,14 @@ _GROUPS: dict[str, type] = {
 
 PROFILES: dict[str, dict[str, Any]] = {
     "default": {},
-    "paper": {"verify": False, "prune_ratio": None, "sparse_precondition": False},
+    "paper": {"verify": False, "prune_ratio": None, "sparse_precondition": False,
+              "max_full_width_nodes": 300, "dense_product_density": None},
 }
 """Named option sets by flat name. ``paper`` is Algorithm 1 and the DMF of the paper to the
-letter (with our documented tie rule): every depth candidate runs to the end; ``default``
-adds the verification stage and stops depth candidates that have clearly lost."""
+letter (with our documented tie rule): every depth candidate runs to the end, with the
+full hidden width 3N up to 300 nodes and the loss gathered over the observed blocks;
+``default`` adds the verification stage, stops depth candidates that have clearly lost,
+uses hidden width ``min(3N, 64)`` and, on small dense graphs, the whole-matrix loss."""
 
 
 @dataclass

@@ -324,8 +324,7 @@ class RotationAverager:
         opt = self.options
         dense, runtime = opt.dense, opt.runtime
         device = resolve_device(runtime.device)
-        width = dense.hidden_width or (3 * n if n <= dense.max_full_width_nodes
-                                       else dense.scalable_width)
+        width = dense.width_for(n)
         depths = list(dict.fromkeys(opt.sparse.depths if sparse else dense.depths))
         if warm is not None and not sparse:
             depths = [warm_depth if warm_depth in depths else depths[0]]

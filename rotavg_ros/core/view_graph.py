@@ -134,15 +134,32 @@ class ViewGraph:
         R: FloatArray,
         weight: FloatArray | None = None,
     ) -> None:
-        """Vectorised :meth:`add_edge` for many measurements."""
+        """:meth:`add_edge` for many measurements, checked all at once; when one is invalid,
+        the ones before it are added and its error is raised, as one call each would."""
         ni = list(node_i)
         nj = list(node_j)
-        R = np.asarray(R, dtype=np.float64)
+        R = np.array(R, dtype=np.float64)  # a copy: the graph keeps views of it
         w = np.ones(len(ni)) if weight is None else np.asarray(weight, dtype=np.float64)
         if not (len(ni) == len(nj) == R.shape[0] == w.shape[0]):
             raise ValueError("node_i, node_j, R and weight must have the same length")
-        for a, b, Rk, wk in zip(ni, nj, R, w, strict=True):
-            self.add_edge(a, b, Rk, float(wk))
+        valid = (R.shape[1:] == (3, 3) and bool(np.isfinite(R).all())
+                 and bool(np.all(np.isfinite(w) & (w > 0)))
+                 and not any(a == b for a, b in zip(ni, nj, strict=True)))
+        if not valid:  # one by one, up to the invalid one
+            for a, b, Rk, wk in zip(ni, nj, R, w, strict=True):
+                self.add_edge(a, b, Rk, float(wk))
+            return
+        add = self.add_node  # node order as one call each: i, then j, edge by edge
+        ends = np.array([(add(a), add(b)) for a, b in zip(ni, nj, strict=True)],
+                        dtype=np.int64).reshape(-1, 2)
+        ia, ib = ends[:, 0], ends[:, 1]
+        swap = ia > ib
+        R[swap] = np.swapaxes(R[swap], 1, 2)
+        self._i.extend(np.where(swap, ib, ia).tolist())
+        self._j.extend(np.where(swap, ia, ib).tolist())
+        self._R.extend(R)
+        self._w.extend(w.tolist())
+        self._cache = None
 
     def clear(self) -> None:
         """Remove every node and measurement."""

@@ -22,7 +22,7 @@ import re
 from collections.abc import Hashable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -147,14 +147,15 @@ def _quat(path: PathLike, lineno: int, q: Sequence[float]) -> FloatArray:
     return quat_to_matrix(np.asarray(q, dtype=np.float64))
 
 
-def _rotation_weight(path: PathLike, lineno: int, info: Sequence[float]) -> float:
-    """``trace / 3`` of the rotation information block, which must be positive definite."""
-    a, b, c, d, e, f = info[_ROT_INFO]
+def _rotation_weight(path: PathLike, lineno: int, block: Sequence[float]) -> float:
+    """``trace / 3`` of the rotation information block (its 6 upper-triangle entries),
+    which must be positive definite."""
+    a, b, c, d, e, f = block
     if min(a, d, f) <= 0.0:
         raise G2oFormatError(
             path, lineno, f"rotation information diagonal must be > 0, got ({a}, {d}, {f})")
-    block = np.array([[a, b, c], [b, d, e], [c, e, f]])
-    if np.linalg.eigvalsh(block)[0] <= 0.0:
+    matrix = np.array([[a, b, c], [b, d, e], [c, e, f]])
+    if np.linalg.eigvalsh(matrix)[0] <= 0.0:
         raise G2oFormatError(path, lineno, "rotation information block not positive definite")
     return (a + d + f) / 3.0
 
@@ -171,10 +172,10 @@ def _parse_vertex(path: PathLike, lineno: int, tokens: list[str]) -> tuple[int, 
 
 def _parse_edge(
     path: PathLike, lineno: int, tokens: list[str]
-) -> tuple[int, int, list[float]]:
-    """``(i, j, the 7 or 28 numbers after the ids)``: the line's structure checked; the
-    quaternion and the information block are checked for many edges at once by
-    :func:`_edge_rotations`."""
+) -> tuple[int, int, list[str]]:
+    """``(i, j, the 7 or 28 number tokens after the ids)``: the line's structure checked;
+    the numbers are converted by :func:`_edge_numbers` and the quaternion and the
+    information block checked by :func:`_edge_rotations`, for many edges at once."""
     if len(tokens) not in (10, 10 + _N_INFO):
         raise G2oFormatError(
             path, lineno, f"{EDGE_TAG} expects 9 fields (i j x y z qx qy qz qw) plus "
@@ -183,29 +184,65 @@ def _parse_edge(
     j = _int(path, lineno, tokens[2], "edge vertex id")
     if i == j:
         raise G2oFormatError(path, lineno, f"self-loop on vertex {i}")
-    return i, j, _floats(path, lineno, tokens[3:], EDGE_TAG)
+    return i, j, tokens[3:]
 
 
-def _edge_rotations(path: PathLike, linenos: list[int], values: list[list[float]]
+class _EdgeNumbers(NamedTuple):
+    """The numbers of parsed edge lines: quaternions (E, 4) and rotation information
+    blocks (E, 6; NaN where a line has no information part)."""
+
+    quats: FloatArray
+    blocks: FloatArray
+
+
+def _edge_numbers(path: PathLike, linenos: list[int], tokens: list[list[str]]
+                  ) -> tuple[_EdgeNumbers, G2oFormatError | None]:
+    """The numbers of edge lines (their tokens after the ids), converted all at once, up to
+    the first line with a token that is not a finite number (its error, as :func:`_floats`
+    words it, or None)."""
+    count = len(tokens)
+    sizes = np.fromiter((len(t) for t in tokens), np.int64, count)
+    try:
+        flat = np.array([t for toks in tokens for t in toks], dtype=np.float64)
+        good = bool(np.isfinite(flat).all())
+    except ValueError:
+        good = False
+    error = None
+    if not good:  # the first bad line, in file order, and the numbers before it
+        for k, (lineno, toks) in enumerate(zip(linenos, tokens, strict=True)):
+            try:
+                _floats(path, lineno, toks, EDGE_TAG)
+            except G2oFormatError as exc:
+                error, count = exc, k
+                break
+        sizes = sizes[:count]
+        flat = np.array([t for toks in tokens[:count] for t in toks], dtype=np.float64)
+    start = np.cumsum(sizes) - sizes  # of each line's numbers in ``flat``
+    quats = flat[start[:, None] + np.arange(3, 7)].reshape(count, 4)
+    blocks = np.full((count, 6), np.nan)
+    has = sizes > 7
+    blocks[has] = flat[start[has, None] + 7 + np.arange(_ROT_INFO.start, _ROT_INFO.stop)]
+    return _EdgeNumbers(quats, blocks), error
+
+
+def _edge_rotations(path: PathLike, linenos: list[int], numbers: _EdgeNumbers
                     ) -> tuple[FloatArray, FloatArray, G2oFormatError | None]:
     """``(R (E, 3, 3), weights (E,), the error of the first bad edge or None)`` for parsed
     edge lines, checked as :func:`_quat` and :func:`_rotation_weight` check one edge.
     Edges from the first bad one on are not returned."""
-    count = len(values)
-    quats = np.array([v[3:7] for v in values], dtype=np.float64).reshape(count, 4)
+    quats, blocks = numbers
+    count = quats.shape[0]
     weights = np.ones(count)
     bad = np.zeros(count, bool)
     norms = np.linalg.norm(quats, axis=1)
     bad |= (norms < _MIN_QUAT_NORM) | (np.abs(norms - 1.0) > QUAT_NORM_TOL)
-    with_info = np.array([len(v) > 7 for v in values], dtype=bool)
+    with_info = ~np.isnan(blocks[:, 0])
     if with_info.any():
-        info = np.array([v[7:][_ROT_INFO] for v, has in zip(values, with_info, strict=True)
-                         if has], dtype=np.float64)
-        a, b, c, d, e, f = info.T
-        blocks = np.stack([np.stack([a, b, c], -1), np.stack([b, d, e], -1),
-                           np.stack([c, e, f], -1)], 1)
+        a, b, c, d, e, f = blocks[with_info].T
+        full = np.stack([np.stack([a, b, c], -1), np.stack([b, d, e], -1),
+                         np.stack([c, e, f], -1)], 1)
         positive = (np.minimum(np.minimum(a, d), f) > 0.0)
-        positive &= np.linalg.eigvalsh(np.where(positive[:, None, None], blocks,
+        positive &= np.linalg.eigvalsh(np.where(positive[:, None, None], full,
                                                 np.eye(3)))[:, 0] > 0.0
         bad[with_info] |= ~positive
         weights[with_info] = (a + d + f) / 3.0
@@ -213,8 +250,9 @@ def _edge_rotations(path: PathLike, linenos: list[int], values: list[list[float]
     first = int(np.argmax(bad)) if bad.any() else count
     if first < count:  # the one-edge checks give the message
         try:
-            _quat(path, linenos[first], values[first][3:7])
-            _rotation_weight(path, linenos[first], values[first][7:])
+            _quat(path, linenos[first], quats[first].tolist())
+            if with_info[first]:
+                _rotation_weight(path, linenos[first], blocks[first].tolist())
         except G2oFormatError as exc:
             error = exc
         else:  # (the batch and the one-edge checks agree; never lose edges silently)
@@ -241,19 +279,19 @@ def read_g2o(path: PathLike, strict: bool = True) -> G2oGraph:
     # first error in file order is raised either way.
     ends: list[tuple[int, int]] = []
     linenos: list[int] = []
-    values: list[list[float]] = []
+    tokens: list[list[str]] = []
     error: G2oFormatError | None = None
     try:
-        _read_lines_into(path, lines, strict, graph, vertices, skipped, ends, linenos, values)
+        _read_lines_into(path, lines, strict, graph, vertices, skipped, ends, linenos, tokens)
     except G2oFormatError as exc:
         error = exc
-    R, w, bad_edge = _edge_rotations(path, linenos, values)
-    if bad_edge is not None:
-        raise bad_edge
-    if error is not None:
-        raise error
-    for (i, j), Rk, wk in zip(ends, R, w, strict=True):
-        graph.add_edge(i, j, Rk, float(wk))
+    # Every edge read precedes ``error``'s line: the first bad edge comes first.
+    numbers, bad_number = _edge_numbers(path, linenos, tokens)
+    R, w, bad_edge = _edge_rotations(path, linenos, numbers)
+    for first in (bad_edge, bad_number, error):
+        if first is not None:
+            raise first
+    graph.add_edges([a for a, _ in ends], [b for _, b in ends], R, w)
     num_edges = len(ends)
     num_unsupported = sum(skipped.get(tag, 0) for tag in UNSUPPORTED_TAGS)
     num_unknown = sum(k for tag, k in skipped.items() if tag not in UNSUPPORTED_TAGS)
@@ -264,20 +302,20 @@ def read_g2o(path: PathLike, strict: bool = True) -> G2oGraph:
 def _read_lines_into(path: PathLike, lines: list[str], strict: bool, graph: ViewGraph,
                      vertices: dict[int, FloatArray], skipped: dict[str, int],
                      ends: list[tuple[int, int]], linenos: list[int],
-                     values: list[list[float]]) -> None:
+                     tokens: list[list[str]]) -> None:
     """First pass of :func:`read_g2o`: vertices, node order, skipped tags, and each edge
-    line's ids and numbers (its rotation is converted later)."""
-    for lineno, tokens in _tokenized(lines):
-        tag = tokens[0]
+    line's ids and number tokens (converted later, all at once)."""
+    for lineno, line in _tokenized(lines):
+        tag = line[0]
         if tag == EDGE_TAG:
-            i, j, vals = _parse_edge(path, lineno, tokens)
+            i, j, numbers = _parse_edge(path, lineno, line)
             graph.add_node(i)  # nodes in the order the file names them
             graph.add_node(j)
             ends.append((i, j))
             linenos.append(lineno)
-            values.append(vals)
+            tokens.append(numbers)
         elif tag == VERTEX_TAG:
-            vid, Rv = _parse_vertex(path, lineno, tokens)
+            vid, Rv = _parse_vertex(path, lineno, line)
             if vid in vertices:
                 raise G2oFormatError(path, lineno, f"duplicate vertex id {vid}")
             vertices[vid] = Rv

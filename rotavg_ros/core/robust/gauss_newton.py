@@ -199,21 +199,22 @@ def jacobi_pcg(A: Any, b: FloatArray, inverse_diagonal: FloatArray, rtol: float,
 
 def gauss_newton_step(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-    laplacian: Factor | None = None,
+    laplacian: Factor | None = None, residuals: FloatArray | None = None,
 ) -> tuple[FloatArray, Factor | None]:
     """One Gauss-Newton step of ``min sum_e w_e |e_e|^2``: the new rotations and the
     factor of the graph Laplacian it used.
 
     ``laplacian``: that of an earlier step with the same weights ``w`` (it depends on
-    nothing else), reused instead of a new factorization. Edges with ``w_e = 0`` take no
-    part; nodes no weighted edge reaches keep their rotation.
+    nothing else), reused instead of a new factorization. ``residuals``: the
+    :func:`edge_residuals` of ``rot`` on every edge, when the caller has them already.
+    Edges with ``w_e = 0`` take no part; nodes no weighted edge reaches keep their rotation.
     """
     n = rot.shape[0]
     active = w > 0
     i, j, R, w = i[active], j[active], R[active], w[active]
     if n < 2 or i.size == 0:
         return rot.copy(), None
-    e = edge_residuals(rot, i, j, R)
+    e = edge_residuals(rot, i, j, R) if residuals is None else residuals[active]
     if laplacian is None:
         L, nodes = _laplacian(n, i, j, w)
         if nodes.size == 0:

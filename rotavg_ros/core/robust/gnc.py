@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rotavg_ros.core.robust.gauss_newton import Factor, gauss_newton_step, residual_angles
+from rotavg_ros.core.robust.gauss_newton import Factor, edge_residuals, gauss_newton_step
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 
@@ -57,7 +57,8 @@ def gnc_tls(
     known = np.zeros(i.size, bool) if known_inlier is None else np.asarray(known_inlier, bool)
     c = np.broadcast_to(np.asarray(c, float), (i.size,))
     # The weights depend on r / c only: GNC runs on residuals in units of their threshold.
-    r = residual_angles(rot, i, j, R) / c
+    e = edge_residuals(rot, i, j, R)
+    r = np.linalg.norm(e, axis=-1) / c
     r_max2 = float(np.max(r[~known] ** 2)) if np.any(~known) else 0.0
     if r_max2 <= 1.0:  # every residual already within the threshold: plain LS
         mu = np.inf
@@ -69,9 +70,11 @@ def gnc_tls(
         gw = np.ones(i.size) if not np.isfinite(mu) else tls_weights(r, 1.0, mu)
         gw[known] = 1.0
         laplacian: Factor | None = None  # one per stage: the stage's weights
-        for _ in range(gn_iterations):
-            rot, laplacian = gauss_newton_step(rot, i, j, R, w * gw, laplacian)
-        r = residual_angles(rot, i, j, R) / c
+        for k in range(gn_iterations):  # the residuals of ``rot`` are known at first
+            rot, laplacian = gauss_newton_step(rot, i, j, R, w * gw, laplacian,
+                                               residuals=e if k == 0 else None)
+        e = edge_residuals(rot, i, j, R)
+        r = np.linalg.norm(e, axis=-1) / c
         steps += 1
         binary = bool(np.all((gw == 0.0) | (gw == 1.0)))
         if not np.isfinite(mu) or steps >= max_steps or (binary and steps > 1):
