@@ -31,7 +31,7 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "rotavg = rotavg_ros.cli:main",
+            "rotavg = rotavg_ros.cli:run",
             "rotavg_node = rotavg_ros.ros.node:main",
         ],
     },

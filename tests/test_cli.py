@@ -143,6 +143,21 @@ def test_module_entry_point_subprocess(tmp_path: Path) -> None:
     assert sorted(quats) == list(range(N))
     assert all(np.degrees(geodesic_distance(quat_to_matrix(q), R[k].T)) < 0.01
                for k, q in quats.items())
+    # The entry ends with os._exit: what the command printed still arrives, through a
+    # pipe, and a refused input still exits with status 2 and its message.
+    loud = subprocess.run(
+        [sys.executable, "-m", "rotavg_ros", "solve", str(g2o), "-o", str(out),
+         "--threads", "1", *FAST_ARGS],
+        cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=120,
+    )
+    assert loud.returncode == 0, loud.stderr
+    assert loud.stdout.startswith(f"solved {N} nodes") and loud.stdout.endswith("\n")
+    bad = subprocess.run(
+        [sys.executable, "-m", "rotavg_ros", "solve", str(tmp_path / "missing.g2o"),
+         "-o", str(out)], cwd=REPO_ROOT, env=env, capture_output=True, text=True,
+        timeout=120,
+    )
+    assert bad.returncode == 2 and "rotavg: error:" in bad.stderr
 
 
 # ---------------------------------------------------------------------- errors

@@ -12,6 +12,8 @@ module (with torch, the bag readers, ...) is imported by its handler when that c
 from __future__ import annotations
 
 import argparse
+import logging
+import os
 import sys
 from collections.abc import Sequence
 
@@ -107,5 +109,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INPUT
 
 
+def run() -> None:
+    """The console entry (``rotavg``, ``python -m rotavg_ros``): :func:`main`, then a fast
+    exit with its status.
+
+    Every command has closed its files when :func:`main` returns; what is left is the
+    interpreter's teardown of torch's modules and thread pools (about 0.4 s of a 4.5 s
+    Ellis Island solve on 2 cores), which does nothing for the user. So once logging and
+    the standard streams are flushed, the process ends with ``os._exit``. An exception or
+    ``SystemExit`` (argparse's usage errors) leaves the normal way.
+    """
+    code = main()
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: nothing more can reach it
+            pass
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
