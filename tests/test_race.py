@@ -176,6 +176,17 @@ def test_the_paper_profile_runs_every_candidate_to_the_end() -> None:
     assert SolverOptions().dense.prune_ratio is not None
 
 
+def test_profiles_choose_the_hidden_width_and_the_loss_form() -> None:
+    """``paper``: the full width 3N up to 300 nodes and the gathered loss; ``default``:
+    min(3N, 64) at every size and the whole-matrix loss on small dense graphs."""
+    paper, default = (SolverOptions.for_profile(p).dense for p in ("paper", "default"))
+    assert [paper.width_for(n) for n in (10, 227, 300, 301, 5000)] == [30, 681, 900, 64, 64]
+    assert [default.width_for(n) for n in (10, 21, 22, 227, 5000)] == [30, 63, 64, 64, 64]
+    assert SolverOptions.from_flat(hidden_width=96).dense.width_for(227) == 96
+    assert paper.dense_product_density is None
+    assert default.dense_product_density is not None
+
+
 @pytest.mark.parametrize(("field", "value"), [
     ("prune_ratio", 0.0), ("prune_ratio", float("nan")), ("prune_every", 30),
     ("prune_every", 0), ("prune_after", 410), ("prune_after", -100),
