@@ -136,7 +136,9 @@ class DenseFitOptions:
     spread between seeds (Ellis Island bit-identical, depth 2 chosen; Ellis + 30% mean
     over seeds 4.10 with 3N, 3.95 with 64; N = 100/10%: median 0.143 and 0.144), and cut
     the DMF time by a third or more (Ellis Island solve 6.2 -> 3.9 s): a 3N x 3N factor
-    makes every Adam step memory-bound."""
+    makes every Adam step memory-bound. Against it: Ellis Island in the sample bag's
+    arrival order averaged 2.03 / 0.406 deg over seeds 0-3 with 3N and 2.15 / 0.390 with
+    64 (a higher mean, a lower median; docs/benchmarks.md, "Bags")."""
     scalable_width: int = 64
 
     def width_for(self, num_nodes: int) -> int:
@@ -144,8 +146,9 @@ class DenseFitOptions:
         if self.hidden_width is not None:
             return self.hidden_width
         full = 3 * num_nodes
-        return full if num_nodes <= self.max_full_width_nodes else min(full,
-                                                                        self.scalable_width)
+        if num_nodes <= self.max_full_width_nodes:
+            return full
+        return min(full, self.scalable_width)
 
 
 @dataclass
