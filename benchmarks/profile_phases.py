@@ -63,7 +63,7 @@ def main() -> int:
                         opt.filter.sigma_untested)
     print(f"filter: {time.perf_counter() - t0:.3f} s ({filt.num_removed} removed)")
     k = filt.kept
-    width = 3 * n if n <= opt.dense.max_full_width_nodes else opt.dense.scalable_width
+    width = opt.dense.width_for(n)
     for depth in opt.dense.depths:
         spec = FitSpec(depth=depth, hidden_width=width, seed=opt.runtime.seed + depth,
                        device=args.device, cuda_graph=opt.runtime.cuda_graphs)
