@@ -51,13 +51,10 @@ def _recorder(costs: dict[int, float],
     return monitor
 
 
-def depth_table(name: str, n: int, i: IntArray, j: IntArray, R: FloatArray,
-                gt: FloatArray) -> None:
-    """Fit every depth on the filtered edges of one graph and print the table."""
-    g = ViewGraph()
-    for k in range(n):
-        g.add_node(k)
-    g.add_edges(i.tolist(), j.tolist(), R)
+def depth_table(name: str, g: ViewGraph, gt: FloatArray) -> None:
+    """Fit every depth on the filtered edges of ``g`` (node ids ``0 .. N-1`` = indices of
+    ``gt``) and print the table."""
+    n = g.num_nodes
     e = g.edge_arrays()
     w = e.weight / np.mean(e.weight)
     opt = SolverOptions.for_profile("default", device="cpu")
@@ -106,14 +103,13 @@ def main() -> int:
              else [c for c in cases if c.startswith("sfm/")])
     for name in names:
         c = cases[name](shared)
-        depth_table(name, c.num_nodes, c.i, c.j, c.R, c.gt)
+        depth_table(name, c.view_graph(), c.gt)
     for size in filter(None, args.scale.split(",")):
         n = int(size)
         rng = np.random.default_rng(0)
         truth = random_rotations(n, rng)
         g = measure(truth, synthetic_edges(n, 20.0, rng), np.random.default_rng(1), 2.0, 0.1)
-        e = g.edge_arrays()
-        depth_table(f"synthetic {n}", n, e.i, e.j, e.R, truth)
+        depth_table(f"synthetic {n}", g, truth)
     return 0
 
 

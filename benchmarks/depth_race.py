@@ -29,7 +29,6 @@ from rotavg_ros.core.dmf import DMFFit, FitSpec, fit_symmetric
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.solver import RotationAverager, selection_cost
 from rotavg_ros.core.types import FloatArray, IntArray
-from rotavg_ros.core.view_graph import ViewGraph
 
 Trace = dict[int, tuple[dict[int, float], float, int]]
 """depth -> (cost by checkpoint, final cost, iterations)"""
@@ -65,10 +64,7 @@ def record_choices(case_name: str, shared: Any) -> list[Trace]:
         choices.append(trace)
         return fits
 
-    g = ViewGraph()
-    for k in range(case.num_nodes):
-        g.add_node(k)
-    g.add_edges(case.i.tolist(), case.j.tolist(), case.R, case.weight)
+    g = case.view_graph()
     RotationAverager._fit_depths = fit_all  # type: ignore[method-assign]
     try:
         RotationAverager(SolverOptions.from_flat(prune_ratio=None, device="cpu")).solve(g)

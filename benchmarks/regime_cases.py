@@ -35,6 +35,7 @@ from rotavg_ros.core.so3 import (
     rotation_about_axis,
     rotation_angle,
 )
+from rotavg_ros.core.view_graph import ViewGraph
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -85,6 +86,17 @@ class RegimeCase:
     @property
     def has_odometry(self) -> bool:
         return self.family in ("slam", "chain", "real") and bool(self.odometry.any())
+
+    def view_graph(self, keep: BoolArray | None = None) -> ViewGraph:
+        """The case as a graph: nodes ``0 .. N-1`` in order (so node id = ground-truth
+        index), then the edges ``keep`` (default all) in case order, with their weights."""
+        sel = np.ones(self.num_edges, bool) if keep is None else keep
+        g = ViewGraph()
+        for k in range(self.num_nodes):
+            g.add_node(k)
+        w = None if self.weight is None else self.weight[sel]
+        g.add_edges(self.i[sel].tolist(), self.j[sel].tolist(), self.R[sel], w)
+        return g
 
 
 # ----------------------------------------------------------------------------- generators

@@ -46,7 +46,6 @@ from benchmarks.regime_cases import FAMILIES, QUICK, RegimeCase, all_cases
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.solver import RotationAverager
-from rotavg_ros.core.view_graph import ViewGraph
 
 OURS = "ours"
 OURS_PAPER = "ours-paper"
@@ -89,12 +88,7 @@ class Result:
 
 def _solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
                 profile: str = "default") -> tuple[np.ndarray, float, str]:
-    sel = np.ones(case.num_edges, bool) if keep is None else keep
-    g = ViewGraph()
-    for k in range(case.num_nodes):
-        g.add_node(k)
-    w = None if case.weight is None else case.weight[sel]
-    g.add_edges(case.i[sel].tolist(), case.j[sel].tolist(), case.R[sel], w)
+    g = case.view_graph(keep)
     t0 = time.perf_counter()
     res = RotationAverager(our_options(profile, device="cpu", **flat)).solve(g)
     wall = time.perf_counter() - t0
