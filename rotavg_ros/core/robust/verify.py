@@ -75,7 +75,7 @@ P = ParamSpec("P")
 
 EXACT_LEVERAGE_EDGES = 100
 """At most this many high-leverage edges off the chain tree (loop closures) get their
-prediction variance solved exactly (three solves each)."""
+prediction variance solved exactly (one Laplacian solve each)."""
 
 
 @dataclass(frozen=True)
@@ -248,21 +248,30 @@ def log_likelihood_of(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
     return log_likelihood(r, model), model
 
 
+def robust_from(
+    start: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    threshold: float | FloatArray, known: BoolArray | None = None,
+) -> tuple[FloatArray, BoolArray]:
+    """``(rotations, inliers)``: GNC-TLS at ``threshold`` (radians; one, or one per edge)
+    from ``start`` with the ``known`` edges trusted, then least squares on its inliers."""
+    g = gnc_tls(start, i, j, R, w, threshold, known)
+    inlier = g.weights > 0 if known is None else (g.weights > 0) | known
+    return refine_least_squares(g.rotations, i, j, R, w * inlier), inlier
+
+
 def robust_solutions(
     i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, starts: dict[str, FloatArray],
     threshold: float,
 ) -> dict[str, tuple[FloatArray, BoolArray]]:
-    """``name -> (rotations, inliers)``: GNC-TLS at ``threshold`` (radians) from each distinct
-    start, then least squares on its inliers (a start equal to an earlier one is skipped)."""
+    """``name -> (rotations, inliers)``: :func:`robust_from` each distinct start (a start
+    equal to an earlier one is skipped)."""
     solutions: dict[str, tuple[FloatArray, BoolArray]] = {}
     seen: list[FloatArray] = []
     for name, rotations in starts.items():
         if any(np.allclose(rotations, other, atol=1e-9) for other in seen):
             continue  # the same start twice (a chain's spanning tree is the chain)
         seen.append(rotations)
-        g = gnc_tls(rotations, i, j, R, w, threshold)
-        inlier = g.weights > 0
-        solutions[name] = (refine_least_squares(g.rotations, i, j, R, w * inlier), inlier)
+        solutions[name] = robust_from(rotations, i, j, R, w, threshold)
     return solutions
 
 
@@ -312,12 +321,6 @@ def verify(
     odometry = np.zeros(i.size, bool) if known_inlier is None else known_inlier
     known = np.zeros(i.size, bool)  # trusted edges: none until the noise scale is known
 
-    def robust_from(start: FloatArray, threshold: float | FloatArray = initial_threshold
-                    ) -> tuple[FloatArray, BoolArray]:
-        g = gnc_tls(start, i, j, R, w, threshold, known)
-        inlier = (g.weights > 0) | known
-        return refine_least_squares(g.rotations, i, j, R, w * inlier), inlier
-
     def cost(rotations: FloatArray) -> float:
         return truncated_l1(rotations, i, j, R, w, cap, known)
 
@@ -354,7 +357,7 @@ def verify(
         # inliers then settle.
         candidates: list[tuple[float, FloatArray, BoolArray]] = []
         for begin in (rot, chain_rot):
-            tight_rot, tight_inlier = robust_from(begin, threshold)
+            tight_rot, tight_inlier = robust_from(begin, i, j, R, w, threshold, known)
             if not any(np.array_equal(tight_inlier, c[2]) for c in candidates):
                 candidates.append((cost(tight_rot), tight_rot, tight_inlier))
         best = min(candidates, key=lambda c: c[0])
