@@ -252,7 +252,9 @@ def test_default_profile_solves_a_chain_with_false_closures_like_the_oracle() ->
     oracle = average_rotations(n, i[~bad], j[~bad], R[~bad], w[~bad],
                                SolverOptions.for_profile("paper"))
     paper = average_rotations(n, i, j, R, w, SolverOptions.for_profile("paper"))
-    assert default.verification == "robust"
+    # The chordal solution shows the false closures: the robust re-solve runs first and
+    # the DMF fitted on its inliers is kept.
+    assert default.verification == "dmf"
     assert np.array_equal(~default.kept, bad)
     assert _mean_error(default.rotations, truth) < 1.1 * _mean_error(oracle.rotations, truth)
     assert _mean_error(paper.rotations, truth) > 5 * _mean_error(default.rotations, truth)

@@ -209,6 +209,12 @@ class VerifyOptions:
     """Cap of the fitted inlier threshold (in standardized units, degrees)."""
     rounds: int = field(default=2, metadata=_flat("verify_rounds"))
     """Re-admit / drop rounds with the fitted threshold."""
+    robust_first: bool = field(default=True, metadata=_flat("robust_first"))
+    """Sparse mode: when the chordal solution shows outliers, run the robust re-solve
+    (steps 1-5 of the verification) first and fit the DMF on its inliers only, instead of
+    on every edge the filter kept; the choice (step 6) then judges that fit. From a start
+    that false closures bent, the fit on every edge ran its whole budget of L-BFGS steps
+    for a solution the verification then replaced by a refit on those same inliers."""
     odometry: str = field(default="auto", metadata=_flat("odometry"))
     """Which edges are odometry, trusted as inliers by the re-solve and never capped in the
     choice cost: ``consecutive`` (nodes adjacent in the order they were first added, e.g.

@@ -30,11 +30,15 @@ from rotavg_ros.core.dmf import (
     fit_symmetric_lbfgs,
     fit_vanilla,
 )
+from rotavg_ros.core.dmf.sparse import shows_outliers
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.verify import (
+    RobustSolve,
+    choose,
     odometry_edges,
+    robust_resolve,
     truncated_l1,
     verify,
 )
@@ -202,47 +206,45 @@ class RotationAverager:
         fi, fj, fR, fw = i[kept], j[kept], R[kept], w[kept]
         sparse = self.is_sparse(n, fi.size)
         self._say(f"{'sparse' if sparse else 'dense'} mode: {n} nodes, {fi.size} edges")
-        H0 = None
-        if initial is not None and opt.dense.explicit_constraint:
-            known = np.all(np.isfinite(initial.reshape(n, 9)), axis=1)
-            if known.mean() >= opt.warm.min_known:
-                if tree_rot is None:
-                    tree_rot = chordal_rotations(n, fi, fj, fR, fw)
-                H0 = warm_start_rotations(initial, known, tree_rot, fi, fj, fR,
-                                          opt.filter.sigma)
-                self._say(f"warm start: {int(known.sum())}/{n} nodes known")
-        fits = self._fit_depths(n, fi, fj, fR, fw, sparse, H0, initial_depth)
-        costs: dict[int, float] = {}
-        rots: dict[int, FloatArray] = {}
-        iterations = {depth: fit.iterations for depth, fit in fits.items()}
-        pruned = tuple(depth for depth, fit in fits.items() if fit.stopped)
-        for depth, fit in fits.items():
-            rot = rotations_from_factor(fit.H)
-            if not np.all(np.isfinite(rot)):
-                continue
-            rots[depth] = rot
-            costs[depth] = observation_cost(rot, fi, fj, fR, fw)
-        if not costs:
-            raise FloatingPointError("every DMF candidate diverged (non-finite factors)")
-        # A stopped candidate's cost is of an unfinished fit: only a fallback.
-        eligible = [d for d in costs if d not in pruned] or list(costs)
-        best = min(eligible, key=lambda d: costs[d])
-        if pruned:
-            self._say(f"candidate race: stopped depth(s) {', '.join(map(str, pruned))} at "
-                      f"iteration(s) {', '.join(str(iterations[d]) for d in pruned)}")
-        rot = rots[best]
-        rot = project_to_so3(np.einsum("nab,cb->nac", rot, rot[0]))  # gauge: R_i R_0^T
-        rot[0] = np.eye(3)  # exactly, not up to the SVD's rounding
+        starts = {} if tree_rot is None else {"tree": tree_rot}  # the filter's tree
+        odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
+        robust: RobustSolve | None = None  # the verification's re-solve, run first
+        inlier_fit: ComponentSolution | None = None
+        if (sparse and initial is None and opt.verify.enabled and opt.verify.robust_first
+                and opt.dense.explicit_constraint and i.size >= 3):
+            robust = self._robust_first(n, (i, j, R, w), kept, starts, odometry)
+            if robust is not None:
+                inlier_fit = self._fit_inliers(n, i, j, R, w, robust.inlier)
+        if robust is not None and inlier_fit is not None:
+            rot, best, costs = inlier_fit.rotations, inlier_fit.depth, inlier_fit.cost_by_depth
+            iterations, pruned = inlier_fit.iterations_by_depth, inlier_fit.pruned_depths
+            dmf_kept = robust.inlier.copy()
+            dmf_kept[robust.inlier] = inlier_fit.filter_kept
+        else:
+            robust = None
+            H0 = None
+            if initial is not None and opt.dense.explicit_constraint:
+                known = np.all(np.isfinite(initial.reshape(n, 9)), axis=1)
+                if known.mean() >= opt.warm.min_known:
+                    if tree_rot is None:
+                        tree_rot = chordal_rotations(n, fi, fj, fR, fw)
+                    H0 = warm_start_rotations(initial, known, tree_rot, fi, fj, fR,
+                                              opt.filter.sigma)
+                    self._say(f"warm start: {int(known.sum())}/{n} nodes known")
+            rot, best, costs, iterations, pruned = self._fit_dmf(
+                n, fi, fj, fR, fw, sparse, H0, initial_depth)
+            dmf_kept = kept
         if not opt.verify.enabled or i.size < 3:
             return ComponentSolution(rot, kept, best, costs, iterations, kept,
                                      untested=untested, pruned_depths=pruned)
-        starts = {} if tree_rot is None else {"tree": tree_rot}  # the filter's tree
+        max_threshold = math.radians(opt.verify.max_threshold_deg)
         try:
-            odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
-            out = verify(n, i, j, R, w, rot, kept, starts, known_inlier=odometry,
-                         initial_threshold=math.radians(opt.verify.initial_threshold_deg),
-                         max_threshold=math.radians(opt.verify.max_threshold_deg),
-                         rounds=opt.verify.rounds)
+            if robust is not None:
+                out = choose(n, i, j, R, w, robust, rot, dmf_kept, max_threshold)
+            else:
+                out = verify(n, i, j, R, w, rot, kept, starts, known_inlier=odometry,
+                             initial_threshold=math.radians(opt.verify.initial_threshold_deg),
+                             max_threshold=max_threshold, rounds=opt.verify.rounds)
         except (np.linalg.LinAlgError, FloatingPointError, RuntimeError) as exc:
             self._say(f"verification failed ({type(exc).__name__}: {exc}); keeping the DMF "
                       "solution")
@@ -254,7 +256,8 @@ class RotationAverager:
         final = out.rotations
         inlier = out.classified
         if out.chosen == "robust":
-            final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap)
+            if inlier_fit is None:  # (else the DMF on these inliers has just lost)
+                final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap)
         elif sparse and np.any(out.inlier & ~inlier):
             # Sparse mode's Huber fit gives gross outliers an L1 say; where its own
             # residuals show some, fit it again without them, and keep that unless it
@@ -278,6 +281,76 @@ class RotationAverager:
                                  out.noise.sigma_deg, out.chosen, out.untested,
                                  out.relocalized, trusted, pruned)
 
+    def _fit_dmf(
+        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool,
+        warm: FloatArray | None, warm_depth: int | None,
+    ) -> tuple[FloatArray, int, dict[int, float], dict[int, int], tuple[int, ...]]:
+        """The DMF at each candidate depth (:meth:`_fit_depths`) and the choice by Eq. 3:
+        ``(rotations (node 0 = I), depth, cost by depth, iterations by depth, depths the
+        race stopped)``."""
+        fits = self._fit_depths(n, i, j, R, w, sparse, warm, warm_depth)
+        costs: dict[int, float] = {}
+        rots: dict[int, FloatArray] = {}
+        iterations = {depth: fit.iterations for depth, fit in fits.items()}
+        pruned = tuple(depth for depth, fit in fits.items() if fit.stopped)
+        for depth, fit in fits.items():
+            rot = rotations_from_factor(fit.H)
+            if not np.all(np.isfinite(rot)):
+                continue
+            rots[depth] = rot
+            costs[depth] = observation_cost(rot, i, j, R, w)
+        if not costs:
+            raise FloatingPointError("every DMF candidate diverged (non-finite factors)")
+        # A stopped candidate's cost is of an unfinished fit: only a fallback.
+        eligible = [d for d in costs if d not in pruned] or list(costs)
+        best = min(eligible, key=lambda d: costs[d])
+        if pruned:
+            self._say(f"candidate race: stopped depth(s) {', '.join(map(str, pruned))} at "
+                      f"iteration(s) {', '.join(str(iterations[d]) for d in pruned)}")
+        rot = rots[best]
+        rot = project_to_so3(np.einsum("nab,cb->nac", rot, rot[0]))  # gauge: R_i R_0^T
+        rot[0] = np.eye(3)  # exactly, not up to the SVD's rounding
+        return rot, best, costs, iterations, pruned
+
+    def _robust_first(
+        self, n: int, edges: tuple[IntArray, IntArray, FloatArray, FloatArray],
+        kept: BoolArray, starts: dict[str, FloatArray], odometry: BoolArray,
+    ) -> RobustSolve | None:
+        """Sparse mode: the verification's robust re-solve of every edge
+        (:func:`~.robust.verify.robust_resolve`), when the chordal solution of the filter's
+        ``kept`` edges shows outliers; else None. A failed re-solve is said and gives None
+        too (the solve then goes on as without)."""
+        i, j, R, w = edges
+        opt = self.options
+        chordal = chordal_rotations(n, i[kept], j[kept], R[kept], w[kept])
+        if not shows_outliers(chordal, i[kept], j[kept], R[kept], w[kept],
+                              opt.sparse.outlier_factor):
+            return None
+        try:
+            robust = robust_resolve(
+                n, i, j, R, w, starts, odometry,
+                initial_threshold=math.radians(opt.verify.initial_threshold_deg),
+                max_threshold=math.radians(opt.verify.max_threshold_deg),
+                rounds=opt.verify.rounds)
+        except (np.linalg.LinAlgError, FloatingPointError, RuntimeError) as exc:
+            self._say(f"robust re-solve failed ({type(exc).__name__}: {exc}); fitting every "
+                      "edge the filter kept")
+            return None
+        self._say(f"robust first: the chordal solution shows outliers; the re-solve leaves "
+                  f"{int((~robust.inlier).sum())} edges outside")
+        return robust
+
+    def _fit_inliers(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+                     keep: BoolArray) -> ComponentSolution | None:
+        """The filtered DMF (no verification) on the edges ``keep``, from its own start;
+        None if those do not connect every node."""
+        labels = connected_components(coo_matrix(
+            (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
+        if np.any(labels != labels[0]):
+            return None
+        plain = RotationAverager(self.options.replace_flat(verify=False))
+        return plain.solve_component(n, i[keep], j[keep], R[keep], w[keep])
+
     def _refit_dmf(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                    keep: BoolArray, current: FloatArray, cap: float, tolerance: float = 0.0,
                    warm: bool = False) -> FloatArray:
@@ -295,8 +368,8 @@ class RotationAverager:
             (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
         if np.any(labels != labels[0]):  # the inliers do not connect every node
             return current
-        paper = RotationAverager(self.options.replace_flat(verify=False))
-        refit = paper.solve_component(n, i[keep], j[keep], R[keep], w[keep],
+        plain = RotationAverager(self.options.replace_flat(verify=False))
+        refit = plain.solve_component(n, i[keep], j[keep], R[keep], w[keep],
                                       initial=current if warm else None).rotations
         # Judged by the same cap, every edge capped: on the same inliers, the question is
         # only which estimator fits the data better, not which edges to trust.
@@ -321,6 +394,9 @@ class RotationAverager:
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool,
         warm: FloatArray | None = None, warm_depth: int | None = None,
     ) -> dict[int, DMFFit]:
+        """Each depth candidate's fit. ``warm``: start rotations near the answer (a previous
+        solution, or sparse mode's robust start): dense mode then fits the depth
+        ``warm_depth`` only, briefly; sparse mode judges the edges at it first."""
         opt = self.options
         dense, runtime = opt.dense, opt.runtime
         device = resolve_device(runtime.device)

@@ -31,6 +31,11 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    solution that explains the data keeps its accuracy. (The solver then fits the DMF again
    on the re-solve's inliers: ``RotationAverager._refit_dmf``.)
 
+:func:`verify` runs all six steps after the DMF fit. In sparse mode, when the chordal
+solution already shows outliers, the solver runs steps 1-5 first (:func:`robust_resolve`,
+without the DMF start), fits the DMF on the re-solve's inliers only, and step 6
+(:func:`choose`) judges that fit.
+
 Conventions: world-to-node ``R_i``, ``R_ij ~= R_i R_j^T``, node 0 fixed (anchor).
 """
 
@@ -40,7 +45,7 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Concatenate, ParamSpec
+from typing import Concatenate, ParamSpec, TypeVar
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -72,6 +77,7 @@ ODOMETRY_COVERAGE = 0.9
 of the consecutive node pairs."""
 
 P = ParamSpec("P")
+T = TypeVar("T")
 
 EXACT_LEVERAGE_EDGES = 100
 """At most this many high-leverage edges off the chain tree (loop closures) get their
@@ -285,14 +291,14 @@ def most_likely(solutions: dict[str, tuple[FloatArray, BoolArray]], i: IntArray,
 
 
 def _well_connected_graphs_solved_iteratively(
-    solve: Callable[Concatenate[int, IntArray, P], VerifyOutcome],
-) -> Callable[Concatenate[int, IntArray, P], VerifyOutcome]:
+    solve: Callable[Concatenate[int, IntArray, P], T],
+) -> Callable[Concatenate[int, IntArray, P], T]:
     """Run ``solve(num_nodes, i, ...)`` with :data:`~.gauss_newton.WELL_CONNECTED` set when
     the input graph has at least ``ITERATIVE_MIN_DEGREE`` edges per node (an SfM view
     graph): every large normal matrix is then solved by conjugate gradients first."""
 
     @functools.wraps(solve)
-    def run(num_nodes: int, i: IntArray, *args: P.args, **kwargs: P.kwargs) -> VerifyOutcome:
+    def run(num_nodes: int, i: IntArray, *args: P.args, **kwargs: P.kwargs) -> T:
         token = WELL_CONNECTED.set(2.0 * i.size / max(num_nodes, 1) >= ITERATIVE_MIN_DEGREE)
         try:
             return solve(num_nodes, i, *args, **kwargs)
@@ -300,6 +306,28 @@ def _well_connected_graphs_solved_iteratively(
             WELL_CONNECTED.reset(token)
 
     return run
+
+
+@dataclass(frozen=True)
+class RobustSolve:
+    """Steps 1-5 of the verification: the robust re-solve of every edge."""
+
+    rotations: FloatArray
+    inlier: BoolArray
+    """The edges the re-solve's final least-squares fit rests on."""
+    noise: NoiseModel
+    t: FloatArray
+    """Standardized residuals of the final fit (NaN: undetermined)."""
+    cap: float
+    """Cap of an edge's say in the choice cost, radians."""
+    known: BoolArray
+    """The trusted (odometry) edges (none unless the tight pass ran)."""
+    tree: BoolArray
+    """The chain tree (:func:`chain_tree`) over the edges."""
+    start: str
+    """The start whose GNC-TLS re-solve was kept (``dmf``, ``chain``, or a caller's)."""
+    relocalized: int
+    """Node moves of :func:`~.relocalize.relocalize_nodes` in the re-solve."""
 
 
 @_well_connected_graphs_solved_iteratively
@@ -312,12 +340,31 @@ def verify(
     rounds: int = 2,
     margin: float = 0.02,
 ) -> VerifyOutcome:
-    """Robust re-solve of every edge and the choice against the DMF solution (see the
-    module docstring).
+    """Robust re-solve of every edge (:func:`robust_resolve`, the DMF solution one of its
+    starts) and the choice against the DMF solution (:func:`choose`); see the module
+    docstring.
 
     ``starts`` are extra start points (name -> rotations) besides the DMF solution and the
     chain tree's rotations.
     """
+    robust = robust_resolve(num_nodes, i, j, R, w, starts, known_inlier, initial_threshold,
+                            max_threshold, rounds, dmf_rotations)
+    return choose(num_nodes, i, j, R, w, robust, dmf_rotations, dmf_kept, max_threshold,
+                  margin)
+
+
+@_well_connected_graphs_solved_iteratively
+def robust_resolve(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    starts: dict[str, FloatArray], known_inlier: BoolArray | None = None,
+    initial_threshold: float = math.radians(30.0),
+    max_threshold: float = math.radians(90.0),
+    rounds: int = 2,
+    dmf_rotations: FloatArray | None = None,
+) -> RobustSolve:
+    """Steps 1-5 of the module docstring: the robust re-solve of every edge from the DMF
+    solution (if given), the chain tree's rotations (where there is odometry or no other
+    start) and ``starts`` (name -> rotations), and the noise scale it shows."""
     odometry = np.zeros(i.size, bool) if known_inlier is None else known_inlier
     known = np.zeros(i.size, bool)  # trusted edges: none until the noise scale is known
 
@@ -331,8 +378,8 @@ def verify(
     # 9 SfM regime cases the chain start never won; skipping it saves a third of the
     # GNC time there.)
     chain = {"chain": chain_rot} if odometry.any() or not starts else {}
-    solutions = robust_solutions(i, j, R, w, {"dmf": dmf_rotations, **chain, **starts},
-                                 initial_threshold)
+    dmf = {} if dmf_rotations is None else {"dmf": dmf_rotations}
+    solutions = robust_solutions(i, j, R, w, {**dmf, **chain, **starts}, initial_threshold)
     start = most_likely(solutions, i, j, R, w, max_threshold)
     rot, inlier = solutions[start]
     rot, inlier, noise, t = _settle(rot, i, j, R, w, inlier, known, tree, rounds,
@@ -380,6 +427,23 @@ def verify(
             rot, inlier, noise, t = moved
             relocalized = moves
             cap = _cap(noise, initial_threshold)
+    return RobustSolve(rot, inlier, noise, t, cap, known, tree, start, relocalized)
+
+
+@_well_connected_graphs_solved_iteratively
+def choose(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    robust: RobustSolve, dmf_rotations: FloatArray, dmf_kept: BoolArray,
+    max_threshold: float = math.radians(90.0), margin: float = 0.02,
+) -> VerifyOutcome:
+    """Step 6 of the module docstring: the DMF solution (its far-off nodes first moved, if
+    that lowers its cost) or the robust re-solve, by the truncated L1 cost over every
+    edge; the DMF solution stands unless the re-solve is ``margin`` (relative) better."""
+    known, cap, tree = robust.known, robust.cap, robust.tree
+
+    def cost(rotations: FloatArray) -> float:
+        return truncated_l1(rotations, i, j, R, w, cap, known)
+
     # The DMF solution's far-off nodes move the same way (each move lowers its cost); it
     # then rests on the edges it explains, not on the filter's.
     dmf_moved, dmf_moves = relocalize_nodes(dmf_rotations, i, j, R, w, cap, known)
@@ -397,13 +461,14 @@ def verify(
     # fit is the more accurate of the two when both explain the data.
     # A DMF solution that needed nodes moved has no claim to the margin: it did not explain
     # the data by itself.
-    costs = {"robust": cost(rot), "dmf": cost(dmf_rotations)}
+    costs = {"robust": cost(robust.rotations), "dmf": cost(dmf_rotations)}
     if not costs["robust"] < (1.0 - (0.0 if dmf_moves else margin)) * costs["dmf"]:
         dmf_noise, classified, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w,
                                                          dmf_inlier, max_threshold, tree)
-        return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, start,
+        return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, robust.start,
                              int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known,
                              classified | known)
-    return VerifyOutcome(rot, inlier, noise, "robust", costs, start,
-                         int(np.sum(np.isnan(t) & ~tree)), cap, relocalized, known, inlier)
+    return VerifyOutcome(robust.rotations, robust.inlier, robust.noise, "robust", costs,
+                         robust.start, int(np.sum(np.isnan(robust.t) & ~tree)), cap,
+                         robust.relocalized, known, robust.inlier)
 
