@@ -14,6 +14,7 @@ from rotavg_ros.core.so3 import (
     project_to_so3,
     quat_to_matrix,
     random_rotations,
+    renormalize,
     rotation_about_axis,
 )
 
@@ -107,6 +108,18 @@ def test_project_to_so3_batches() -> None:
     m = M[1, 2]
     best = np.min(chordal_distance(cand, m))
     assert chordal_distance(P[1, 2], m) <= best + 1e-12
+
+
+def test_renormalize_matches_the_projection_near_and_far_from_so3() -> None:
+    rng = np.random.default_rng(5)
+    R = random_rotations(200, rng) @ random_rotations(200, rng)  # rotations up to rounding
+    near = R + 1e-9 * rng.normal(size=R.shape)
+    far = R + 1e-2 * rng.normal(size=R.shape)
+    reflected = R[:3] @ np.diag([1.0, 1.0, -1.0])
+    for M in (R, near, np.concatenate([near[:50], far[:50], reflected])):
+        out = renormalize(M)
+        assert _is_rotation(out)
+        np.testing.assert_allclose(out, project_to_so3(M), atol=1e-13)
 
 
 def test_project_to_so3_reflection_gets_det_plus_one() -> None:

@@ -91,6 +91,27 @@ def project_to_so3(M: ArrayLike) -> FloatArray:
     return U @ Vt
 
 
+NEAR_ROTATION = 1e-6
+""":func:`renormalize`: a matrix with ``max |X^T X - I|`` up to this is within rounding of a
+rotation and is corrected by one Newton-Schulz step (error afterwards about its square)."""
+
+
+def renormalize(M: ArrayLike) -> FloatArray:
+    """:func:`project_to_so3` for matrices that are rotations up to rounding (products of
+    rotations): one Newton-Schulz step of the polar decomposition, ``X (3 I - X^T X) / 2``,
+    two batched products instead of a batched SVD. A matrix further off (``NEAR_ROTATION``)
+    or with det <= 0 is projected by the SVD."""
+    M = np.asarray(M, dtype=np.float64)
+    gram = np.swapaxes(M, -1, -2) @ M
+    gram -= np.eye(3)
+    out = M - 0.5 * (M @ gram)
+    det = np.einsum("...i,...i->...", M[..., 0, :], np.cross(M[..., 1, :], M[..., 2, :]))
+    off = (np.abs(gram).max(axis=(-2, -1)) > NEAR_ROTATION) | (det <= 0.0)
+    if np.any(off):
+        out[off] = project_to_so3(M[off])
+    return out
+
+
 def geodesic_distance(A: ArrayLike, B: ArrayLike) -> FloatArray:
     """Angle of ``A B^T`` in radians (the Riemannian distance on SO(3))."""
     A = np.asarray(A, dtype=np.float64)

@@ -28,7 +28,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.linalg import splu
 
-from rotavg_ros.core.so3 import exp_map, log_map, project_to_so3
+from rotavg_ros.core.so3 import exp_map, log_map, renormalize
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 
@@ -228,7 +228,7 @@ def gauss_newton_step(
     d = np.zeros(3 * n)
     d[solver.free] = solver.solve(-b.reshape(-1)[solver.free])
     step = exp_map(d.reshape(n, 3))
-    return project_to_so3(step @ rot), laplacian
+    return renormalize(step @ rot), laplacian
 
 
 def prediction_variance(
