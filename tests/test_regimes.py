@@ -90,6 +90,22 @@ def test_summary_counts() -> None:
     assert "best peer's mean on 1/1" in text
 
 
+def test_summary_compares_with_the_better_gnc_variant() -> None:
+    def row(case: str, method: str, med: float, wall: float, false: int = 5) -> Result:
+        return Result(case, "chain", 9, 9, method, "ok", med, med, med, wall,
+                      false_edges=false)
+
+    text = summarize([
+        row("a", OURS, 1.0, 1.0), row("a", "gtsam_gnc_tls", 2.0, 2.0),
+        row("a", "gtsam_gnc_tls+odo", 0.9, 8.0),  # the better variant: lower median
+        row("b", OURS, 1.0, 1.0), row("b", "gtsam_gnc_tls", 1.5, 4.0),
+        row("c", OURS, 1.0, 1.0, false=0), row("c", "gtsam_gnc_tls", 9.0, 9.0),  # clean
+    ])
+    assert ("median lower than the better variant's on 1/2, equal (within 0.5%) on 0/2, "
+            "higher on 1/2; time at most a quarter of its time on 2/2") in text
+    assert "| a | 1.000 | gtsam_gnc_tls+odo: 0.900 | 1.00 | 8.00 | 0.12 |" in text
+
+
 def test_gnc_peer_with_known_inliers_runs() -> None:
     from benchmarks import peers
     from benchmarks.regimes import GNC_ODO, methods_for
