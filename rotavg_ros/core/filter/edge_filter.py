@@ -87,13 +87,15 @@ def loop_statistics(
 
 
 def loop_errors(
-    R: FloatArray, e_ab: IntArray, e_bc: IntArray, e_ac: IntArray, chunk: int = 1 << 18
+    R: FloatArray, e_ab: IntArray, e_bc: IntArray, e_ac: IntArray, chunk: int = 1 << 15
 ) -> FloatArray:
     """``delta = d_chord(R_ab, R_ac R_cb) = ||R_ab - R_ac R_bc^T||_F`` per triangle.
 
     Edge rotations are gathered in a structure-of-arrays layout (9, T) and the 3x3 products
     written out as multiply-adds over T (several times faster than ``einsum`` over (T, 3, 3)
-    on a million triangles), in chunks of ``chunk`` triangles to bound memory.
+    on a million triangles), in chunks of ``chunk`` triangles to bound memory (small ones:
+    their 2 MB arrays are reused in cache; Ellis Island in a fresh process 0.23 s with
+    chunks of 2^18, 0.12 s with 2^15).
     """
     rows = torch.as_tensor(R.reshape(-1, 9).T.copy())  # rows[3a + b] = R[:, a, b]
     out = np.empty(e_ab.size)
