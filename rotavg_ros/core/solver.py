@@ -220,7 +220,7 @@ class RotationAverager:
             iterations, pruned = inlier_fit.iterations_by_depth, inlier_fit.pruned_depths
             dmf_kept = robust.inlier.copy()
             dmf_kept[robust.inlier] = inlier_fit.filter_kept
-        else:
+        else:  # the order of the paper: fit, then verify (also where the inliers split)
             robust = None
             H0 = None
             if initial is not None and opt.dense.explicit_constraint:
@@ -341,15 +341,16 @@ class RotationAverager:
         return robust
 
     def _fit_inliers(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-                     keep: BoolArray) -> ComponentSolution | None:
-        """The filtered DMF (no verification) on the edges ``keep``, from its own start;
-        None if those do not connect every node."""
+                     keep: BoolArray, initial: FloatArray | None = None,
+                     ) -> ComponentSolution | None:
+        """The filtered DMF (no verification) on the edges ``keep``, from its own start or
+        warm-started from ``initial``; None if those edges do not connect every node."""
         labels = connected_components(coo_matrix(
             (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
         if np.any(labels != labels[0]):
             return None
         plain = RotationAverager(self.options.replace_flat(verify=False))
-        return plain.solve_component(n, i[keep], j[keep], R[keep], w[keep])
+        return plain.solve_component(n, i[keep], j[keep], R[keep], w[keep], initial=initial)
 
     def _refit_dmf(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                    keep: BoolArray, current: FloatArray, cap: float, tolerance: float = 0.0,
@@ -364,13 +365,10 @@ class RotationAverager:
         ``warm``: the refit continues from ``current`` (a kept DMF solution, fitted again
         without the outliers it shows) instead of a new start.
         """
-        labels = connected_components(coo_matrix(
-            (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
-        if np.any(labels != labels[0]):  # the inliers do not connect every node
+        fit = self._fit_inliers(n, i, j, R, w, keep, current if warm else None)
+        if fit is None:  # the inliers do not connect every node
             return current
-        plain = RotationAverager(self.options.replace_flat(verify=False))
-        refit = plain.solve_component(n, i[keep], j[keep], R[keep], w[keep],
-                                      initial=current if warm else None).rotations
+        refit = fit.rotations
         # Judged by the same cap, every edge capped: on the same inliers, the question is
         # only which estimator fits the data better, not which edges to trust.
         if (truncated_l1(refit, i, j, R, w, cap)
@@ -395,8 +393,8 @@ class RotationAverager:
         warm: FloatArray | None = None, warm_depth: int | None = None,
     ) -> dict[int, DMFFit]:
         """Each depth candidate's fit. ``warm``: start rotations near the answer (a previous
-        solution, or sparse mode's robust start): dense mode then fits the depth
-        ``warm_depth`` only, briefly; sparse mode judges the edges at it first."""
+        solution): dense mode then fits the depth ``warm_depth`` only, briefly; sparse mode
+        judges the edges at it first."""
         opt = self.options
         dense, runtime = opt.dense, opt.runtime
         device = resolve_device(runtime.device)

@@ -330,7 +330,6 @@ class RobustSolve:
     """Node moves of :func:`~.relocalize.relocalize_nodes` in the re-solve."""
 
 
-@_well_connected_graphs_solved_iteratively
 def verify(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     dmf_rotations: FloatArray, dmf_kept: BoolArray, starts: dict[str, FloatArray],
