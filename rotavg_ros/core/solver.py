@@ -210,9 +210,11 @@ class RotationAverager:
         odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
         robust: RobustSolve | None = None  # the verification's re-solve, run first
         inlier_fit: ComponentSolution | None = None
+        chordal: FloatArray | None = None  # sparse mode's start, when computed here
         if (sparse and initial is None and opt.verify.enabled and opt.verify.robust_first
                 and opt.dense.explicit_constraint and i.size >= 3):
-            robust = self._robust_first(n, (i, j, R, w), kept, starts, odometry)
+            chordal = chordal_rotations(n, fi, fj, fR, fw)
+            robust = self._robust_first(n, (i, j, R, w), kept, chordal, starts, odometry)
             if robust is not None:
                 inlier_fit = self._fit_inliers(n, i, j, R, w, robust.inlier)
         if robust is not None and inlier_fit is not None:
@@ -232,7 +234,7 @@ class RotationAverager:
                                               opt.filter.sigma)
                     self._say(f"warm start: {int(known.sum())}/{n} nodes known")
             rot, best, costs, iterations, pruned = self._fit_dmf(
-                n, fi, fj, fR, fw, sparse, H0, initial_depth)
+                n, fi, fj, fR, fw, sparse, H0, initial_depth, chordal)
             dmf_kept = kept
         if not opt.verify.enabled or i.size < 3:
             return ComponentSolution(rot, kept, best, costs, iterations, kept,
@@ -283,12 +285,12 @@ class RotationAverager:
 
     def _fit_dmf(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool,
-        warm: FloatArray | None, warm_depth: int | None,
+        warm: FloatArray | None, warm_depth: int | None, chordal: FloatArray | None = None,
     ) -> tuple[FloatArray, int, dict[int, float], dict[int, int], tuple[int, ...]]:
         """The DMF at each candidate depth (:meth:`_fit_depths`) and the choice by Eq. 3:
         ``(rotations (node 0 = I), depth, cost by depth, iterations by depth, depths the
         race stopped)``."""
-        fits = self._fit_depths(n, i, j, R, w, sparse, warm, warm_depth)
+        fits = self._fit_depths(n, i, j, R, w, sparse, warm, warm_depth, chordal)
         costs: dict[int, float] = {}
         rots: dict[int, FloatArray] = {}
         iterations = {depth: fit.iterations for depth, fit in fits.items()}
@@ -314,15 +316,15 @@ class RotationAverager:
 
     def _robust_first(
         self, n: int, edges: tuple[IntArray, IntArray, FloatArray, FloatArray],
-        kept: BoolArray, starts: dict[str, FloatArray], odometry: BoolArray,
+        kept: BoolArray, chordal: FloatArray, starts: dict[str, FloatArray],
+        odometry: BoolArray,
     ) -> RobustSolve | None:
         """Sparse mode: the verification's robust re-solve of every edge
-        (:func:`~.robust.verify.robust_resolve`), when the chordal solution of the filter's
-        ``kept`` edges shows outliers; else None. A failed re-solve is said and gives None
-        too (the solve then goes on as without)."""
+        (:func:`~.robust.verify.robust_resolve`), when ``chordal``, the chordal solution of
+        the filter's ``kept`` edges, shows outliers; else None. A failed re-solve is said
+        and gives None too (the solve then goes on as without)."""
         i, j, R, w = edges
         opt = self.options
-        chordal = chordal_rotations(n, i[kept], j[kept], R[kept], w[kept])
         if not shows_outliers(chordal, i[kept], j[kept], R[kept], w[kept],
                               opt.sparse.outlier_factor):
             return None
@@ -391,10 +393,12 @@ class RotationAverager:
     def _fit_depths(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool,
         warm: FloatArray | None = None, warm_depth: int | None = None,
+        chordal: FloatArray | None = None,
     ) -> dict[int, DMFFit]:
         """Each depth candidate's fit. ``warm``: start rotations near the answer (a previous
         solution): dense mode then fits the depth ``warm_depth`` only, briefly; sparse mode
-        judges the edges at it first."""
+        judges the edges at it first. ``chordal``: the chordal solution of these edges, if
+        already computed (sparse mode's start without ``warm``)."""
         opt = self.options
         dense, runtime = opt.dense, opt.runtime
         device = resolve_device(runtime.device)
@@ -406,7 +410,7 @@ class RotationAverager:
         delta = 0.0
         if sparse and dense.explicit_constraint:
             if H0 is None:
-                H0 = chordal_rotations(n, i, j, R, w)
+                H0 = chordal if chordal is not None else chordal_rotations(n, i, j, R, w)
             pred = np.einsum("eab,ecb->eac", H0[i], H0[j])
             delta = opt.sparse.huber_factor * float(np.median(np.abs(pred - R)))
         graphed = runtime.cuda_graphs and dense.explicit_constraint and not sparse
