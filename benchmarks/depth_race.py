@@ -42,9 +42,10 @@ def record_choices(case_name: str, shared: Any) -> list[Trace]:
 
     def fit_all(self: RotationAverager, n: int, i: IntArray, j: IntArray, R: FloatArray,
                 w: FloatArray, sparse: bool, warm: FloatArray | None = None,
-                warm_depth: int | None = None) -> dict[int, DMFFit]:
+                warm_depth: int | None = None,
+                chordal: FloatArray | None = None) -> dict[int, DMFFit]:
         if sparse or warm is not None:
-            return original(self, n, i, j, R, w, sparse, warm, warm_depth)
+            return original(self, n, i, j, R, w, sparse, warm, warm_depth, chordal)
         dense = self.options.dense
         width = dense.width_for(n)
         fits, trace = {}, {}
