@@ -4,9 +4,16 @@ Conventions (as everywhere in the project): node rotations ``R_i`` are **world-t
 edge ``k`` joins ``i[k] < j[k]`` and carries ``R[k] ~= R_i R_j^T``. Angles are in degrees
 unless a name says ``rad``.
 
-Noise model: a measurement is ``R_i R_j^T`` multiplied on the right by a rotation about a
+Noise models (:data:`NOISE_MODELS`): a measurement is ``R_i R_j^T`` multiplied on the right
+by a small rotation. ``folded`` (the default, and the recorded runs): a rotation about a
 uniformly random axis through an angle ``|N(0, sigma)|`` (so ``sigma`` is the standard
-deviation of the error angle's normal before folding; mean error angle ``0.80 sigma``).
+deviation of the error angle's normal before folding; mean error angle ``0.80 sigma``); its
+density in the tangent space peaks sharply at zero, which favours L1-like estimators.
+``tangent``: ``exp`` of an isotropic Gaussian tangent vector, ``N(0, sigma / sqrt(3))`` per
+axis (the same RMS error angle ``sigma``): the model of a g2o information matrix, for which
+least squares is the maximum-likelihood estimator. ``--noise-model`` and ``--seed`` of
+``python -m benchmarks.regimes`` draw the same regimes afresh: a held-out check that the
+recorded results do not depend on one draw.
 False edges are Haar-random rotations, redrawn until they are at least
 :data:`MIN_FALSE_DEG` away from the truth. Grouped false loop closures (perceptual aliasing,
 as in the Vertigo / switchable-constraints generators) are runs of ``k`` new edges
@@ -14,7 +21,8 @@ as in the Vertigo / switchable-constraints generators) are runs of ``k`` new edg
 wrong world rotation ``W`` per group: they agree with each other and with the odometry, and
 disagree with the truth by the angle of ``W``.
 
-Every case is built from a fixed seed, so the same name gives the same edges bit for bit.
+Every case is built from a fixed seed, so the same name, seed and noise model give the same
+edges bit for bit.
 """
 
 from __future__ import annotations
@@ -23,6 +31,7 @@ import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,6 +54,9 @@ MIN_FALSE_DEG = 30.0
 """Every generated false edge is at least this far (geodesic angle) from the truth."""
 
 FAMILIES = ("slam", "chain", "sfm", "real")
+
+NOISE_MODELS = ("folded", "tangent")
+"""How measurement noise is drawn (see the module docstring); ``folded`` is the default."""
 
 
 @dataclass
@@ -117,11 +129,18 @@ def random_axes(n: int, rng: np.random.Generator) -> FloatArray:
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-def perturb(R: FloatArray, sigma_deg: float, rng: np.random.Generator) -> FloatArray:
-    """``R_k N_k`` with ``N_k`` a rotation by ``|N(0, sigma)|`` about a random axis."""
+def perturb(R: FloatArray, sigma_deg: float, rng: np.random.Generator,
+            model: str = "folded") -> FloatArray:
+    """``R_k N_k``: ``N_k`` a rotation by ``|N(0, sigma)|`` about a random axis (``folded``),
+    or ``exp`` of a tangent vector with ``N(0, sigma / sqrt(3))`` per axis (``tangent``)."""
+    if model not in NOISE_MODELS:
+        raise ValueError(f"noise model must be one of {NOISE_MODELS}, got {model!r}")
     n = R.shape[0]
     if sigma_deg <= 0 or n == 0:
         return R.copy()
+    if model == "tangent":
+        omega = rng.normal(0.0, np.radians(sigma_deg) / np.sqrt(3.0), size=(n, 3))
+        return R @ exp_map(omega)
     angles = np.abs(rng.normal(0.0, np.radians(sigma_deg), size=n))
     return R @ rotation_about_axis(random_axes(n, rng), angles)
 
@@ -158,6 +177,7 @@ def grouped_false_edges(gt: FloatArray, existing: set[tuple[int, int]], groups: 
                         size_range: tuple[int, int], min_gap: int, noise_deg: float,
                         rng: np.random.Generator, stride: int = 1,
                         forbid: Callable[[int, int], bool] | None = None,
+                        noise_model: str = "folded",
                         ) -> tuple[IntArray, IntArray, FloatArray]:
     """``groups`` runs of mutually consistent false closures (see the module docstring).
 
@@ -194,7 +214,7 @@ def grouped_false_edges(gt: FloatArray, existing: set[tuple[int, int]], groups: 
         made += 1
     if not ii:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 3))
-    R = perturb(np.stack(Rs), noise_deg, rng)
+    R = perturb(np.stack(Rs), noise_deg, rng, noise_model)
     return np.asarray(ii, np.int64), np.asarray(jj, np.int64), R
 
 
@@ -209,7 +229,8 @@ def triangle_count(n: int, i: IntArray, j: IntArray) -> int:
 
 
 def slam_case(name: str, shared: Path, graph: str, *, noise_deg: float = 1.0,
-              random_false: float = 0.0, groups: int = 0, seed: int = 0) -> RegimeCase:
+              random_false: float = 0.0, groups: int = 0, seed: int = 0,
+              noise_model: str = "folded") -> RegimeCase:
     """Measurements regenerated on a real SLAM graph's edges, against its reference.
 
     ``random_false``: fraction of the non-odometry edges replaced by false rotations;
@@ -223,12 +244,13 @@ def slam_case(name: str, shared: Path, graph: str, *, noise_deg: float = 1.0,
     i, j = sorted_edges(e.i, e.j)
     rng = rng_for(name, seed)
     truth = relative(gt, i, j)
-    R = perturb(truth, noise_deg, rng)
+    R = perturb(truth, noise_deg, rng, noise_model)
     loop = np.flatnonzero(np.abs(i - j) != 1)
     inlier = replace_with_false(R, truth, loop, random_false, rng)
     if groups:
         existing = set(zip(i.tolist(), j.tolist(), strict=True))
-        gi, gj, gR = grouped_false_edges(gt, existing, groups, (5, 10), 50, noise_deg, rng)
+        gi, gj, gR = grouped_false_edges(gt, existing, groups, (5, 10), 50, noise_deg, rng,
+                                         noise_model=noise_model)
         i, j, R = np.r_[i, gi], np.r_[j, gj], np.concatenate([R, gR])
         inlier = np.r_[inlier, np.zeros(gi.shape[0], bool)]
     desc = f"{graph} edges, noise {noise_deg:g} deg"
@@ -258,7 +280,8 @@ def chain_trajectory(n: int, rng: np.random.Generator, step_deg: float = 4.0) ->
 
 def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float = 0.0,
                false_grouped: float = 0.0, odo_noise_deg: float = 1.5,
-               loop_noise_deg: float = 2.0, seed: int = 0) -> RegimeCase:
+               loop_noise_deg: float = 2.0, seed: int = 0,
+               noise_model: str = "folded") -> RegimeCase:
     """An odometry chain ``(k, k+1)`` plus sparse loop closures and no triangles.
 
     ``closures`` true loop closures between keyframes at least 20 apart, each rejected
@@ -307,17 +330,17 @@ def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float 
     while len(gi_l) < n_grp:
         k = min(int(rng.integers(4, 9)), n_grp - len(gi_l))
         gi, gj, gR = grouped_false_edges(gt, set(used), 1, (k, k), 40, loop_noise_deg, rng,
-                                         stride=2, forbid=bad)
+                                         stride=2, forbid=bad, noise_model=noise_model)
         for a, b in zip(gi.tolist(), gj.tolist(), strict=True):
             add(a, b)
         gi_l += gi.tolist()
         gj_l += gj.tolist()
         g_R += list(gR)
     odo_i = np.arange(num_nodes - 1, dtype=np.int64)
-    R_odo = perturb(relative(gt, odo_i, odo_i + 1), odo_noise_deg, rng)
+    R_odo = perturb(relative(gt, odo_i, odo_i + 1), odo_noise_deg, rng, noise_model)
     ti = np.asarray([p[0] for p in true_pairs], np.int64)
     tj = np.asarray([p[1] for p in true_pairs], np.int64)
-    R_true = perturb(relative(gt, ti, tj), loop_noise_deg, rng)
+    R_true = perturb(relative(gt, ti, tj), loop_noise_deg, rng, noise_model)
     ri = np.asarray([p[0] for p in rand_pairs], np.int64)
     rj = np.asarray([p[1] for p in rand_pairs], np.int64)
     R_rand = false_rotations(relative(gt, ri, rj), rng)
@@ -337,7 +360,8 @@ def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float 
 
 
 def dense_case(name: str, num_nodes: int, degree: float, *, outliers: float,
-               noise_deg: float = 2.0, seed: int = 0) -> RegimeCase:
+               noise_deg: float = 2.0, seed: int = 0,
+               noise_model: str = "folded") -> RegimeCase:
     """Erdos-Renyi graph with mean degree ``degree`` (plus a random Hamiltonian path so it
     is connected), Haar ground truth, ``noise_deg`` noise, and a fraction ``outliers`` of
     all edges replaced by false rotations."""
@@ -354,7 +378,7 @@ def dense_case(name: str, num_nodes: int, degree: float, *, outliers: float,
     ij = np.asarray(sorted(pairs), np.int64)
     i, j = ij[:, 0], ij[:, 1]
     truth = relative(gt, i, j)
-    R = perturb(truth, noise_deg, rng)
+    R = perturb(truth, noise_deg, rng, noise_model)
     inlier = replace_with_false(R, truth, np.arange(i.shape[0]), outliers, rng)
     desc = (f"random graph N={n}, mean degree {2 * i.shape[0] / n:.0f}, noise "
             f"{noise_deg:g} deg, {outliers:.0%} outlier edges")
@@ -417,59 +441,74 @@ def real_case(name: str, shared: Path, graph: str) -> RegimeCase:
 CaseBuilder = Callable[[Path], RegimeCase]
 
 
-def _slam(name: str, graph: str, **kw: float) -> tuple[str, CaseBuilder]:
-    return name, lambda shared: slam_case(name, shared, graph, **kw)  # type: ignore[arg-type]
+def all_cases(seed: int = 0, noise_model: str = "folded") -> dict[str, CaseBuilder]:
+    """Every case of the suite, by name, in run order (cheap to call: builds nothing).
 
+    ``seed`` and ``noise_model`` (:data:`NOISE_MODELS`) draw every generated case afresh;
+    Ellis Island's own measurements and the ``real/`` cases do not change with them.
+    """
+    if noise_model not in NOISE_MODELS:
+        raise ValueError(f"noise model must be one of {NOISE_MODELS}, got {noise_model!r}")
+    def slam(name: str, graph: str, **kw: Any) -> tuple[str, CaseBuilder]:
+        return name, lambda shared: slam_case(name, shared, graph, seed=seed,
+                                              noise_model=noise_model, **kw)
 
-def all_cases() -> dict[str, CaseBuilder]:
-    """Every case of the suite, by name, in run order (cheap to call: builds nothing)."""
+    def chain(name: str, nodes: int, **kw: Any) -> tuple[str, CaseBuilder]:
+        return name, lambda shared: chain_case(name, nodes, seed=seed,
+                                               noise_model=noise_model, **kw)
+
+    def dense(name: str, nodes: int, degree: float, outliers: float) -> tuple[str, CaseBuilder]:
+        return name, lambda shared: dense_case(name, nodes, degree, outliers=outliers,
+                                               seed=seed, noise_model=noise_model)
+
+    def ellis(name: str, extra: float = 0.0) -> tuple[str, CaseBuilder]:
+        return name, lambda shared: ellis_case(name, shared, extra=extra, seed=seed)
+
+    def real(graph: str) -> tuple[str, CaseBuilder]:
+        return f"real/{graph}", lambda shared: real_case(f"real/{graph}", shared, graph)
+
     cases: list[tuple[str, CaseBuilder]] = [
         # SLAM topologies, regenerated measurements. Outlier-only cases carry 1 deg noise.
-        _slam("slam/smallGrid3D/noise1", "smallGrid3D", noise_deg=1.0),
-        _slam("slam/smallGrid3D/noise5", "smallGrid3D", noise_deg=5.0),
-        _slam("slam/smallGrid3D/noise10", "smallGrid3D", noise_deg=10.0),
-        _slam("slam/smallGrid3D/noise20", "smallGrid3D", noise_deg=20.0),
-        _slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10),
-        _slam("slam/smallGrid3D/rand20", "smallGrid3D", random_false=0.20),
-        _slam("slam/smallGrid3D/grouped", "smallGrid3D", groups=3),
-        _slam("slam/smallGrid3D/noise10+rand10", "smallGrid3D", noise_deg=10.0,
-              random_false=0.10),
-        _slam("slam/parking-garage/noise5", "parking-garage", noise_deg=5.0),
-        _slam("slam/parking-garage/noise20", "parking-garage", noise_deg=20.0),
-        _slam("slam/parking-garage/rand5", "parking-garage", random_false=0.05),
-        _slam("slam/parking-garage/rand20", "parking-garage", random_false=0.20),
-        _slam("slam/parking-garage/grouped", "parking-garage", groups=8),
-        _slam("slam/parking-garage/noise5+rand5", "parking-garage", noise_deg=5.0,
-              random_false=0.05),
-        _slam("slam/sphere2500/noise10", "sphere2500", noise_deg=10.0),
-        _slam("slam/sphere2500/rand5", "sphere2500", random_false=0.05),
-        _slam("slam/sphere2500/noise5+grouped", "sphere2500", noise_deg=5.0, groups=10),
-        _slam("slam/torus3D/noise1", "torus3D", noise_deg=1.0),
-        _slam("slam/torus3D/rand10", "torus3D", random_false=0.10),
+        slam("slam/smallGrid3D/noise1", "smallGrid3D", noise_deg=1.0),
+        slam("slam/smallGrid3D/noise5", "smallGrid3D", noise_deg=5.0),
+        slam("slam/smallGrid3D/noise10", "smallGrid3D", noise_deg=10.0),
+        slam("slam/smallGrid3D/noise20", "smallGrid3D", noise_deg=20.0),
+        slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10),
+        slam("slam/smallGrid3D/rand20", "smallGrid3D", random_false=0.20),
+        slam("slam/smallGrid3D/grouped", "smallGrid3D", groups=3),
+        slam("slam/smallGrid3D/noise10+rand10", "smallGrid3D", noise_deg=10.0,
+             random_false=0.10),
+        slam("slam/parking-garage/noise5", "parking-garage", noise_deg=5.0),
+        slam("slam/parking-garage/noise20", "parking-garage", noise_deg=20.0),
+        slam("slam/parking-garage/rand5", "parking-garage", random_false=0.05),
+        slam("slam/parking-garage/rand20", "parking-garage", random_false=0.20),
+        slam("slam/parking-garage/grouped", "parking-garage", groups=8),
+        slam("slam/parking-garage/noise5+rand5", "parking-garage", noise_deg=5.0,
+             random_false=0.05),
+        slam("slam/sphere2500/noise10", "sphere2500", noise_deg=10.0),
+        slam("slam/sphere2500/rand5", "sphere2500", random_false=0.05),
+        slam("slam/sphere2500/noise5+grouped", "sphere2500", noise_deg=5.0, groups=10),
+        slam("slam/torus3D/noise1", "torus3D", noise_deg=1.0),
+        slam("slam/torus3D/rand10", "torus3D", random_false=0.10),
         # Plain chains: odometry + sparse closures, no triangles.
-        ("chain/300/clean", lambda s: chain_case("chain/300/clean", 300, closures=20)),
-        ("chain/300/rand20", lambda s: chain_case("chain/300/rand20", 300, closures=16,
-                                                  false_random=0.20)),
-        ("chain/1000/rand40", lambda s: chain_case("chain/1000/rand40", 1000, closures=36,
-                                                   false_random=0.40)),
-        ("chain/1000/grouped30", lambda s: chain_case("chain/1000/grouped30", 1000,
-                                                      closures=42, false_grouped=0.30)),
-        ("chain/3000/mixed35", lambda s: chain_case("chain/3000/mixed35", 3000, closures=100,
-                                                    false_random=0.15, false_grouped=0.20)),
+        chain("chain/300/clean", 300, closures=20),
+        chain("chain/300/rand20", 300, closures=16, false_random=0.20),
+        chain("chain/1000/rand40", 1000, closures=36, false_random=0.40),
+        chain("chain/1000/grouped30", 1000, closures=42, false_grouped=0.30),
+        chain("chain/3000/mixed35", 3000, closures=100, false_random=0.15,
+              false_grouped=0.20),
         # SfM / dense.
-        ("sfm/ellis", lambda s: ellis_case("sfm/ellis", s)),
-        ("sfm/ellis+15", lambda s: ellis_case("sfm/ellis+15", s, extra=0.15)),
-        ("sfm/ellis+30", lambda s: ellis_case("sfm/ellis+30", s, extra=0.30)),
-        ("sfm/dense100/out10", lambda s: dense_case("sfm/dense100/out10", 100, 50, outliers=0.1)),
-        ("sfm/dense100/out50", lambda s: dense_case("sfm/dense100/out50", 100, 50, outliers=0.5)),
-        ("sfm/dense400/out10", lambda s: dense_case("sfm/dense400/out10", 400, 40, outliers=0.1)),
-        ("sfm/dense400/out30", lambda s: dense_case("sfm/dense400/out30", 400, 40, outliers=0.3)),
-        ("sfm/dense400/out50", lambda s: dense_case("sfm/dense400/out50", 400, 40, outliers=0.5)),
-        ("sfm/dense1000/out30", lambda s: dense_case("sfm/dense1000/out30", 1000, 16,
-                                                     outliers=0.3)),
+        ellis("sfm/ellis"),
+        ellis("sfm/ellis+15", extra=0.15),
+        ellis("sfm/ellis+30", extra=0.30),
+        dense("sfm/dense100/out10", 100, 50, outliers=0.1),
+        dense("sfm/dense100/out50", 100, 50, outliers=0.5),
+        dense("sfm/dense400/out10", 400, 40, outliers=0.1),
+        dense("sfm/dense400/out30", 400, 40, outliers=0.3),
+        dense("sfm/dense400/out50", 400, 40, outliers=0.5),
+        dense("sfm/dense1000/out30", 1000, 16, outliers=0.3),
         # Real measurements.
-        *[(f"real/{g}", (lambda g: lambda s: real_case(f"real/{g}", s, g))(g))
-          for g in ("smallGrid3D", "parking-garage", "sphere2500", "torus3D")],
+        *(real(g) for g in ("smallGrid3D", "parking-garage", "sphere2500", "torus3D")),
     ]
     return dict(cases)
 

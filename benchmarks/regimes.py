@@ -43,7 +43,7 @@ import numpy as np
 
 from benchmarks import peers
 from benchmarks.datasets import shared_dir_or_say
-from benchmarks.regime_cases import FAMILIES, QUICK, RegimeCase, all_cases
+from benchmarks.regime_cases import FAMILIES, NOISE_MODELS, QUICK, RegimeCase, all_cases
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.solver import RotationAverager
@@ -352,8 +352,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--markdown", help="also write the table and summary to this file")
     p.add_argument("--json", help="write the raw results (per-node errors too) here")
     p.add_argument("--plots", help="folder for one error-CDF PNG per family (matplotlib)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="draw the generated cases with this seed (default 0: the record)")
+    p.add_argument("--noise-model", choices=NOISE_MODELS, default="folded",
+                   help="measurement noise of the generated cases (default folded: the record)")
     args = p.parse_args(argv)
-    builders = all_cases()
+    builders = all_cases(args.seed, args.noise_model)
     names = select(list(builders), args.cases, args.quick)
     if args.list:
         for n in names:
@@ -390,10 +394,13 @@ def main(argv: list[str] | None = None) -> int:
     summary = summarize(results)
     if any(r.method == OURS_PAPER for r in results):
         summary += "\n\n" + summarize(results, OURS_PAPER).split("\n")[0]
-    print(f"\n{summary}\n\ntotal wall time {total:.0f} s for {len(names)} cases", flush=True)
+    draw = f"seed {args.seed}, {args.noise_model} noise"
+    print(f"\n{summary}\n\ntotal wall time {total:.0f} s for {len(names)} cases ({draw})",
+          flush=True)
     if args.markdown:
         Path(args.markdown).write_text(
-            f"{table}\n\n{summary}\n\ntotal wall time {total:.0f} s for {len(names)} cases\n")
+            f"{table}\n\n{summary}\n\ntotal wall time {total:.0f} s for {len(names)} cases "
+            f"({draw})\n")
     if args.json:
         Path(args.json).write_text(json.dumps([asdict(r) for r in results]))
     if args.plots:

@@ -57,6 +57,28 @@ def test_false_edges_are_wrong_and_inliers_are_close(make: object) -> None:
     assert np.median(err[case.inlier]) < 5.0  # 1.5-2 deg noise
 
 
+def test_seed_and_noise_model_draw_the_same_regime_afresh() -> None:
+    base = rc.dense_case("test/draw", 40, 12, outliers=0.2, noise_deg=5.0)
+    again = rc.dense_case("test/draw", 40, 12, outliers=0.2, noise_deg=5.0, seed=0,
+                          noise_model="folded")
+    assert np.array_equal(base.R, again.R)  # the defaults are the recorded draw
+    other = rc.dense_case("test/draw", 40, 12, outliers=0.2, noise_deg=5.0, seed=1)
+    assert not np.array_equal(other.gt, base.gt)
+    # Both noise models give an RMS error angle of sigma; only the folded one peaks at 0.
+    rng = np.random.default_rng(3)
+    eye = np.tile(np.eye(3), (20000, 1, 1))
+    folded = _angles_deg(rc.perturb(eye, 5.0, rng, "folded"), eye)
+    tangent = _angles_deg(rc.perturb(eye, 5.0, rng, "tangent"), eye)
+    for err in (folded, tangent):
+        assert abs(np.sqrt(np.mean(err ** 2)) - 5.0) < 0.1
+    assert np.mean(folded < 1.0) > 5 * np.mean(tangent < 1.0)
+    with pytest.raises(ValueError, match="noise model"):
+        rc.perturb(eye[:2], 1.0, rng, "laplace")
+    with pytest.raises(ValueError, match="noise model"):
+        rc.all_cases(0, "laplace")
+    assert list(rc.all_cases(1, "tangent")) == list(rc.all_cases())
+
+
 def test_chain_has_no_triangles_and_odometry() -> None:
     case = _tiny_chain()
     assert rc.triangle_count(case.num_nodes, case.i, case.j) == 0

@@ -216,7 +216,9 @@ class RotationAverager:
             chordal = chordal_rotations(n, fi, fj, fR, fw)
             robust = self._robust_first(n, (i, j, R, w), kept, chordal, starts, odometry)
             if robust is not None:
-                inlier_fit = self._fit_inliers(n, i, j, R, w, robust.inlier)
+                inlier_fit = self._fit_inliers(
+                    n, i, j, R, w, robust.inlier,
+                    robust.rotations if opt.verify.refit_from_resolve else None)
         if robust is not None and inlier_fit is not None:
             rot, best, costs = inlier_fit.rotations, inlier_fit.depth, inlier_fit.cost_by_depth
             iterations, pruned = inlier_fit.iterations_by_depth, inlier_fit.pruned_depths
@@ -259,7 +261,8 @@ class RotationAverager:
         inlier = out.classified
         if out.chosen == "robust":
             if inlier_fit is None:  # (else the DMF on these inliers has just lost)
-                final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap)
+                final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap,
+                                        warm=opt.verify.refit_from_resolve)
         elif sparse and np.any(out.inlier & ~inlier):
             # Sparse mode's Huber fit gives gross outliers an L1 say; where its own
             # residuals show some, fit it again without them, and keep that unless it
@@ -345,26 +348,31 @@ class RotationAverager:
     def _fit_inliers(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                      keep: BoolArray, initial: FloatArray | None = None,
                      ) -> ComponentSolution | None:
-        """The filtered DMF (no verification) on the edges ``keep``, from its own start or
-        warm-started from ``initial``; None if those edges do not connect every node."""
+        """The DMF (no verification) on the edges ``keep``, from its own start or warm-started
+        from ``initial``; None if those edges do not connect every node. The edge filter runs
+        first unless ``VerifyOptions.refit_from_resolve`` says the verification has judged
+        these edges already."""
         labels = connected_components(coo_matrix(
             (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
         if np.any(labels != labels[0]):
             return None
-        plain = RotationAverager(self.options.replace_flat(verify=False))
+        verified = self.options.verify.refit_from_resolve  # the edges are judged already
+        plain = RotationAverager(self.options.replace_flat(
+            verify=False, use_filter=self.options.filter.use_filter and not verified))
         return plain.solve_component(n, i[keep], j[keep], R[keep], w[keep], initial=initial)
 
     def _refit_dmf(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                    keep: BoolArray, current: FloatArray, cap: float, tolerance: float = 0.0,
                    warm: bool = False) -> FloatArray:
-        """The filtered DMF again, on the edges ``keep``; ``current`` itself (the same
-        object) if those do not connect every node or the refit's cost (the choice's, every
-        edge capped at ``cap``) is more than ``tolerance`` (relative) above ``current``'s.
+        """The DMF again, on the edges ``keep`` (see :meth:`_fit_inliers`); ``current`` itself
+        (the same object) if those do not connect every node or the refit's cost (the
+        choice's, every edge capped at ``cap``) is more than ``tolerance`` (relative) above
+        ``current``'s.
 
         After a robust re-solve: the least-squares re-solve found the inliers; the DMF's
-        entry-wise L1 fit with reweighting is the more accurate estimator on them (the
-        benchmark's oracle row is exactly this fit on the true edges), from its own start.
-        ``warm``: the refit continues from ``current`` (a kept DMF solution, fitted again
+        entry-wise L1 fit with reweighting is the more accurate estimator on them where it
+        converges, and the cost test keeps the re-solve where it does not. ``warm``: the
+        refit continues from ``current`` (the re-solve, or a kept DMF solution fitted again
         without the outliers it shows) instead of a new start.
         """
         fit = self._fit_inliers(n, i, j, R, w, keep, current if warm else None)

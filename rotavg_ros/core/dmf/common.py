@@ -149,12 +149,17 @@ def nodes_from_stacked(H: torch.Tensor) -> torch.Tensor:
 
 
 def soa_matmul(
-    A: torch.Tensor, B: torch.Tensor, transpose_a: bool = False, transpose_b: bool = False
+    A: torch.Tensor, B: torch.Tensor, transpose_a: bool = False, transpose_b: bool = False,
+    out: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Batched 3x3 product on (3, 3, E) tensors: op(A) op(B) with op = optional transpose."""
+    """Batched 3x3 product on (3, 3, E) tensors: op(A) op(B) with op = optional transpose;
+    into ``out`` (3, 3, E) when given (it must not overlap ``A`` or ``B``)."""
     a = A.transpose(0, 1) if transpose_a else A
     b = B.transpose(0, 1) if transpose_b else B
-    out = a[:, None, 0] * b[None, 0, :]
+    if out is None:
+        out = a[:, None, 0] * b[None, 0, :]
+    else:
+        torch.mul(a[:, None, 0], b[None, 0, :], out=out)
     out.addcmul_(a[:, None, 1], b[None, 1, :])
     out.addcmul_(a[:, None, 2], b[None, 2, :])
     return out
