@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from rotavg_ros.core.chordal_init import chordal_rotations
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.robust import gauss_newton
@@ -20,7 +19,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     residual_angles,
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
-from rotavg_ros.core.robust.noise import fit_noise
+from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, fit_noise, residual_shape
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.robust.verify import chain_tree, odometry_edges, truncated_l1, verify
 from rotavg_ros.core.so3 import exp_map, random_rotations, rotation_angle
@@ -285,10 +284,26 @@ def test_sparse_mode_runs_the_robust_resolve_first_where_the_chordal_start_shows
     assert any(line.startswith("verification") for line in said)
 
 
-def _noisy_strip(n: int, noise_deg: float, false: int, seed: int
+def test_residual_shape_tells_gaussian_residuals_from_peaked_ones() -> None:
+    rng = np.random.default_rng(4)
+    maxwell = np.linalg.norm(rng.normal(0.0, 0.03, (3000, 3)), axis=1)
+    folded = np.abs(rng.normal(0.0, 0.05, 3000))
+    every = np.ones(3000, bool)
+    assert residual_shape(maxwell, every) >= GAUSSIAN_SHAPE > residual_shape(folded, every)
+    assert abs(residual_shape(maxwell, every) - 0.921) < 0.01
+    with_nan = maxwell.copy()
+    with_nan[:100] = np.nan  # undetermined residuals are left out
+    assert residual_shape(with_nan, every) == pytest.approx(residual_shape(maxwell[100:],
+                                                                            every[100:]))
+    assert math.isnan(residual_shape(maxwell, np.arange(3000) < 10))  # too few
+
+
+def _noisy_strip(n: int, gaussian: bool, false: int, seed: int
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Keyframes k with edges (k, k+1) and (k, k+2) (a strip of triangles), each rotated
-    by noise_deg about a random axis, plus ``false`` random closures 30-40 apart."""
+    """Keyframes k with edges (k, k+1) and (k, k+2) (a strip of triangles) and ``false``
+    random closures 30-40 apart. Noise: ``gaussian``, an isotropic Gaussian tangent vector
+    of 5 deg RMS; else heavy-tailed, an angle |N(0, s)| about a random axis with s = 2 deg
+    for 80% of the edges and 12 deg for the rest."""
     rng = np.random.default_rng(seed)
     steps = exp_map(rng.normal(0.0, math.radians(4.0), (n, 3)))
     truth = np.empty((n, 3, 3))
@@ -299,34 +314,44 @@ def _noisy_strip(n: int, noise_deg: float, false: int, seed: int
     i = np.r_[np.arange(n - 1), np.arange(n - 2), a]
     j = np.r_[np.arange(1, n), np.arange(2, n), a + rng.integers(30, 40, false)]
     R = truth[i] @ np.swapaxes(truth[j], 1, 2)
-    axes = rng.normal(size=(i.size, 3))
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    R = R @ exp_map(axes * math.radians(noise_deg))
+    if gaussian:
+        R = R @ exp_map(rng.normal(0.0, math.radians(5.0) / math.sqrt(3.0), (i.size, 3)))
+    else:
+        axes = rng.normal(size=(i.size, 3))
+        axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+        scale = np.where(rng.random(i.size) < 0.2, math.radians(12.0), math.radians(2.0))
+        R = R @ exp_map(axes * (np.abs(rng.normal(size=i.size)) * scale)[:, None])
     R[2 * n - 3:] = random_rotations(false, rng)
     return i, j, R, truth
 
 
-def test_fits_on_the_verified_inliers_skip_the_filter_and_start_from_the_resolve() -> None:
-    # 5 deg per edge: the filter's fixed 8.1 deg drops true edges, which the verification
-    # re-admits; the DMF fit on its inliers must not drop them again. One draw (the regime
-    # benchmark over seeds is the evidence): here the filtered refit from its own start
-    # ends twice as far from the truth as the chordal solution of the true edges.
-    i, j, R, truth = _noisy_strip(200, 5.0, 12, seed=2)
-    n, w = 200, np.ones(i.size)
-    said: dict[bool, list[str]] = {True: [], False: []}
-    error = {}
+def _strip_solves(gaussian: bool, seed: int) -> tuple[dict[bool, float], dict[bool, int]]:
+    """Mean error and the number of filter passes, with ``refit_from_resolve`` on and off."""
+    i, j, R, truth = _noisy_strip(200, gaussian, 12, seed)
+    error, filtered = {}, {}
     for on in (True, False):
-        out = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
-            "default", refit_from_resolve=on, progress=said[on].append))
+        said: list[str] = []
+        out = average_rotations(200, i, j, R, np.ones(i.size), SolverOptions.for_profile(
+            "default", refit_from_resolve=on, progress=said.append))
         error[on] = _mean_error(out.rotations, truth)
-    filtered = {on: sum(line.startswith("filter:") for line in lines)
-                for on, lines in said.items()}
-    assert filtered == {True: 1, False: 2}  # off: the inlier fit filters once more
-    true = np.ones(i.size, bool)
-    true[-12:] = False
-    oracle = chordal_rotations(n, i[true], j[true], R[true], w[true])
-    assert error[True] < 1.05 * _mean_error(oracle, truth)
-    assert error[True] < 0.6 * error[False]
+        filtered[on] = sum(line.startswith("filter:") for line in said)
+    return error, filtered
+
+
+def test_fits_on_the_verified_inliers_skip_the_filter_where_the_noise_is_not_gaussian(
+) -> None:
+    # Heavy-tailed noise: the filter's fixed 8.1 deg drops true edges, the verification
+    # re-admits them, and the DMF fit on its inliers must not drop them again (one filter
+    # pass, not two). One draw; the regime benchmark over seeds and noise models is the
+    # evidence. (This strip is weakly constrained: errors of several degrees.)
+    error, filtered = _strip_solves(gaussian=False, seed=3)
+    assert filtered == {True: 1, False: 2}
+    assert error[True] < 0.8 * error[False]
+    # Gaussian noise: the re-solve's residuals look Gaussian, least squares is the better
+    # estimator there, and the solve is the one without the option.
+    error, filtered = _strip_solves(gaussian=True, seed=2)
+    assert filtered[True] == filtered[False] == 2
+    assert error[True] == error[False]
 
 
 def _grid(side: int, false_fraction: float, seed: int

@@ -216,13 +216,16 @@ class VerifyOptions:
     that false closures bent, the fit on every edge ran its whole budget of L-BFGS steps
     for a solution the verification then replaced by a refit on those same inliers."""
     refit_from_resolve: bool = field(default=True, metadata=_flat("refit_from_resolve"))
-    """The DMF fits on the edges the verification calls inliers (robust first's fit, the
-    refit after the re-solve wins, sparse mode's refit without the outliers it shows) skip
-    the edge filter, and those after a re-solve start from its rotations. The re-solve has
-    already judged every edge against the fitted noise; the filter's fixed 8.1 deg would
-    drop good edges of a high-noise graph again (parking-garage at 5 deg: 1,057 of 6,274),
-    and a fit from its own chordal start can settle far off (at 20 deg: 44-70 deg median
-    against the re-solve's 21-24). Off: filtered, from the fit's own start (as before)."""
+    """Sparse mode: the DMF fits on the edges the verification calls inliers (robust first's
+    fit, the refit after the re-solve wins, the refit without the outliers a kept DMF
+    shows) skip the edge filter, and the first two start from the re-solve's rotations.
+    The re-solve has already judged every edge against the fitted noise; the filter's
+    fixed 8.1 deg would drop good edges of a high-noise graph again (parking-garage at
+    5 deg: 1,057 of 6,274), and a fit from its own chordal start can settle far off (at
+    20 deg: 44-70 deg median against the re-solve's 21-24). Not where the re-solve's
+    residuals look Gaussian (:data:`~rotavg_ros.core.robust.noise.GAUSSIAN_SHAPE`): least
+    squares is the better estimator there. Dense mode, and off: the filtered refit from
+    the fit's own start (as before)."""
     odometry: str = field(default="auto", metadata=_flat("odometry"))
     """Which edges are odometry, trusted as inliers by the re-solve and never capped in the
     choice cost: ``consecutive`` (nodes adjacent in the order they were first added, e.g.

@@ -34,6 +34,7 @@ from rotavg_ros.core.dmf.sparse import shows_outliers
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, residual_shape
 from rotavg_ros.core.robust.verify import (
     RobustSolve,
     choose,
@@ -216,9 +217,10 @@ class RotationAverager:
             chordal = chordal_rotations(n, fi, fj, fR, fw)
             robust = self._robust_first(n, (i, j, R, w), kept, chordal, starts, odometry)
             if robust is not None:
+                from_resolve = self._refit_from_resolve(robust.t, robust.inlier)  # (sparse)
                 inlier_fit = self._fit_inliers(
-                    n, i, j, R, w, robust.inlier,
-                    robust.rotations if opt.verify.refit_from_resolve else None)
+                    n, i, j, R, w, robust.inlier, robust.rotations if from_resolve else None,
+                    unfiltered=from_resolve)
         if robust is not None and inlier_fit is not None:
             rot, best, costs = inlier_fit.rotations, inlier_fit.depth, inlier_fit.cost_by_depth
             iterations, pruned = inlier_fit.iterations_by_depth, inlier_fit.pruned_depths
@@ -261,8 +263,9 @@ class RotationAverager:
         inlier = out.classified
         if out.chosen == "robust":
             if inlier_fit is None:  # (else the DMF on these inliers has just lost)
+                from_resolve = sparse and self._refit_from_resolve(out.resolve_t, out.inlier)
                 final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap,
-                                        warm=opt.verify.refit_from_resolve)
+                                        warm=from_resolve, unfiltered=from_resolve)
         elif sparse and np.any(out.inlier & ~inlier):
             # Sparse mode's Huber fit gives gross outliers an L1 say; where its own
             # residuals show some, fit it again without them, and keep that unless it
@@ -271,7 +274,8 @@ class RotationAverager:
             # no say: there a refit changed little (Ellis Island: 2.209 / 0.393 ->
             # 2.249 / 0.386 deg) and cost a whole fit.
             final = self._refit_dmf(n, i, j, R, w, inlier, out.rotations, out.cap,
-                                    tolerance=REFIT_TOLERANCE, warm=True)
+                                    tolerance=REFIT_TOLERANCE, warm=True,
+                                    unfiltered=opt.verify.refit_from_resolve)
         refitted = final is not out.rotations
         if out.chosen == "robust" or refitted or out.relocalized:  # (the anchor may move)
             final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
@@ -345,25 +349,34 @@ class RotationAverager:
                   f"{int((~robust.inlier).sum())} edges outside")
         return robust
 
+    def _refit_from_resolve(self, t: FloatArray, inlier: BoolArray) -> bool:
+        """Sparse mode: whether the DMF fits on the re-solve's inliers skip the filter and
+        start from it (``VerifyOptions.refit_from_resolve``). Not where the re-solve's
+        standardized inlier residuals ``t`` look Gaussian (:func:`residual_shape`): there
+        least squares is the better estimator, and an L1 fit started from it always lowers
+        the choice's L1 cost, so it would replace it."""
+        if not self.options.verify.refit_from_resolve:
+            return False
+        shape = residual_shape(t, inlier)
+        return not (math.isfinite(shape) and shape >= GAUSSIAN_SHAPE)
+
     def _fit_inliers(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                      keep: BoolArray, initial: FloatArray | None = None,
-                     ) -> ComponentSolution | None:
+                     unfiltered: bool = False) -> ComponentSolution | None:
         """The DMF (no verification) on the edges ``keep``, from its own start or warm-started
-        from ``initial``; None if those edges do not connect every node. The edge filter runs
-        first unless ``VerifyOptions.refit_from_resolve`` says the verification has judged
-        these edges already."""
+        from ``initial``; None if those edges do not connect every node. ``unfiltered``: no
+        edge filter first (the verification has judged these edges already)."""
         labels = connected_components(coo_matrix(
             (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
         if np.any(labels != labels[0]):
             return None
-        verified = self.options.verify.refit_from_resolve  # the edges are judged already
         plain = RotationAverager(self.options.replace_flat(
-            verify=False, use_filter=self.options.filter.use_filter and not verified))
+            verify=False, use_filter=self.options.filter.use_filter and not unfiltered))
         return plain.solve_component(n, i[keep], j[keep], R[keep], w[keep], initial=initial)
 
     def _refit_dmf(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                    keep: BoolArray, current: FloatArray, cap: float, tolerance: float = 0.0,
-                   warm: bool = False) -> FloatArray:
+                   warm: bool = False, unfiltered: bool = False) -> FloatArray:
         """The DMF again, on the edges ``keep`` (see :meth:`_fit_inliers`); ``current`` itself
         (the same object) if those do not connect every node or the refit's cost (the
         choice's, every edge capped at ``cap``) is more than ``tolerance`` (relative) above
@@ -375,7 +388,7 @@ class RotationAverager:
         refit continues from ``current`` (the re-solve, or a kept DMF solution fitted again
         without the outliers it shows) instead of a new start.
         """
-        fit = self._fit_inliers(n, i, j, R, w, keep, current if warm else None)
+        fit = self._fit_inliers(n, i, j, R, w, keep, current if warm else None, unfiltered)
         if fit is None:  # the inliers do not connect every node
             return current
         refit = fit.rotations

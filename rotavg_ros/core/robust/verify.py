@@ -110,6 +110,8 @@ class VerifyOutcome:
     """Edges the noise model fitted to the kept solution's own residuals classifies as
     inliers (with the trusted ones): for ``dmf``, the filter's edges minus those the DMF
     solution itself shows to be outliers."""
+    resolve_t: FloatArray
+    """Standardized residuals of the re-solve's final fit (NaN: undetermined)."""
 
 
 def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> BoolArray:
@@ -466,8 +468,8 @@ def choose(
                                                          dmf_inlier, max_threshold, tree)
         return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, robust.start,
                              int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known,
-                             classified | known)
+                             classified | known, robust.t)
     return VerifyOutcome(robust.rotations, robust.inlier, robust.noise, "robust", costs,
                          robust.start, int(np.sum(np.isnan(robust.t) & ~tree)), cap,
-                         robust.relocalized, known, robust.inlier)
+                         robust.relocalized, known, robust.inlier, robust.t)
 
