@@ -60,7 +60,14 @@ from rotavg_ros.core.robust.gauss_newton import (
     residual_angles,
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
-from rotavg_ros.core.robust.noise import NoiseModel, fit_noise, is_inlier, log_likelihood
+from rotavg_ros.core.robust.noise import (
+    GAUSSIAN_SHAPE,
+    NoiseModel,
+    fit_noise,
+    is_inlier,
+    log_likelihood,
+    residual_shape,
+)
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
@@ -439,7 +446,11 @@ def choose(
 ) -> VerifyOutcome:
     """Step 6 of the module docstring: the DMF solution (its far-off nodes first moved, if
     that lowers its cost) or the robust re-solve, by the truncated L1 cost over every
-    edge; the DMF solution stands unless the re-solve is ``margin`` (relative) better."""
+    edge; the DMF solution stands unless the re-solve is ``margin`` (relative) better.
+    Where the re-solve's standardized inlier residuals look Gaussian
+    (:func:`~.noise.residual_shape` >= :data:`~.noise.GAUSSIAN_SHAPE`) the margin goes the
+    other way: least squares is the better estimator there, and an L1 cost favours the L1
+    fit, so the re-solve stands unless the DMF solution is ``margin`` better."""
     known, cap, tree = robust.known, robust.cap, robust.tree
 
     def cost(rotations: FloatArray) -> float:
@@ -463,7 +474,11 @@ def choose(
     # A DMF solution that needed nodes moved has no claim to the margin: it did not explain
     # the data by itself.
     costs = {"robust": cost(robust.rotations), "dmf": cost(dmf_rotations)}
-    if not costs["robust"] < (1.0 - (0.0 if dmf_moves else margin)) * costs["dmf"]:
+    if residual_shape(robust.t, robust.inlier) >= GAUSSIAN_SHAPE:  # (NaN: not Gaussian)
+        dmf_stands = costs["dmf"] < (1.0 - margin) * costs["robust"]
+    else:
+        dmf_stands = not costs["robust"] < (1.0 - (0.0 if dmf_moves else margin)) * costs["dmf"]
+    if dmf_stands:
         dmf_noise, classified, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w,
                                                          dmf_inlier, max_threshold, tree)
         return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, robust.start,
