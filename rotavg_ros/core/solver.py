@@ -264,8 +264,11 @@ class RotationAverager:
         if out.chosen == "robust":
             if inlier_fit is None:  # (else the DMF on these inliers has just lost)
                 from_resolve = sparse and self._refit_from_resolve(out.resolve_t, out.inlier)
+                # A cold, filtered refit on every edge repeats the first fit exactly.
+                repeat = initial is None and not from_resolve and bool(np.all(out.inlier))
                 final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap,
-                                        warm=from_resolve, unfiltered=from_resolve)
+                                        warm=from_resolve, unfiltered=from_resolve,
+                                        fitted=rot if repeat else None)
         elif sparse and np.any(out.inlier & ~inlier):
             # Sparse mode's Huber fit gives gross outliers an L1 say; where its own
             # residuals show some, fit it again without them, and keep that unless it
@@ -376,7 +379,8 @@ class RotationAverager:
 
     def _refit_dmf(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                    keep: BoolArray, current: FloatArray, cap: float, tolerance: float = 0.0,
-                   warm: bool = False, unfiltered: bool = False) -> FloatArray:
+                   warm: bool = False, unfiltered: bool = False,
+                   fitted: FloatArray | None = None) -> FloatArray:
         """The DMF again, on the edges ``keep`` (see :meth:`_fit_inliers`); ``current`` itself
         (the same object) if those do not connect every node or the refit's cost (the
         choice's, every edge capped at ``cap``) is more than ``tolerance`` (relative) above
@@ -386,12 +390,16 @@ class RotationAverager:
         entry-wise L1 fit with reweighting is the more accurate estimator on them where it
         converges, and the cost test keeps the re-solve where it does not. ``warm``: the
         refit continues from ``current`` (the re-solve, or a kept DMF solution fitted again
-        without the outliers it shows) instead of a new start.
+        without the outliers it shows) instead of a new start. ``fitted``: the refit's
+        result, already known (a cold, filtered refit on every edge repeats the first fit).
         """
-        fit = self._fit_inliers(n, i, j, R, w, keep, current if warm else None, unfiltered)
-        if fit is None:  # the inliers do not connect every node
-            return current
-        refit = fit.rotations
+        if fitted is not None:
+            refit = fitted
+        else:
+            fit = self._fit_inliers(n, i, j, R, w, keep, current if warm else None, unfiltered)
+            if fit is None:  # the inliers do not connect every node
+                return current
+            refit = fit.rotations
         # Judged by the same cap, every edge capped: on the same inliers, the question is
         # only which estimator fits the data better, not which edges to trust.
         if (truncated_l1(refit, i, j, R, w, cap)
