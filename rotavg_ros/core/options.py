@@ -222,10 +222,11 @@ class VerifyOptions:
     The re-solve has already judged every edge against the fitted noise; the filter's
     fixed 8.1 deg would drop good edges of a high-noise graph again (parking-garage at
     5 deg: 1,057 of 6,274), and a fit from its own chordal start can settle far off (at
-    20 deg: 44-70 deg median against the re-solve's 21-24). Not where the re-solve's
-    residuals look Gaussian (:data:`~rotavg_ros.core.robust.noise.GAUSSIAN_SHAPE`): least
-    squares is the better estimator there. Dense mode, and off: the filtered refit from
-    the fit's own start (as before)."""
+    20 deg: 44-70 deg median against the re-solve's 21-24). The first two stay filtered
+    and cold where the re-solve's residuals look Gaussian
+    (:data:`~rotavg_ros.core.robust.noise.GAUSSIAN_SHAPE`): least squares is the better
+    estimator there. Dense mode, and off: the filtered refit from the fit's own start (as
+    before)."""
     odometry: str = field(default="auto", metadata=_flat("odometry"))
     """Which edges are odometry, trusted as inliers by the re-solve and never capped in the
     choice cost: ``consecutive`` (nodes adjacent in the order they were first added, e.g.
