@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
+import queue
 import resource
 import time
 from typing import Any
@@ -21,7 +22,10 @@ import numpy as np
 
 
 def _child(n: int, degree: float, seed: int, device: str, q: Any) -> None:
-    from bench_warm_start import measure, synthetic_edges
+    try:  # python -m benchmarks.bench_scale from the repository root
+        from benchmarks.bench_warm_start import measure, synthetic_edges
+    except ImportError:  # cd benchmarks && python bench_scale.py
+        from bench_warm_start import measure, synthetic_edges  # type: ignore[no-redef]
 
     from rotavg_ros.core.metrics import evaluate
     from rotavg_ros.core.options import SolverOptions
@@ -73,7 +77,14 @@ def main() -> None:
         q = ctx.Queue()
         proc = ctx.Process(target=_child, args=(n, args.degree, args.seed, args.device, q))
         proc.start()
-        n_, e, mode, wall, per_iter, rss, mean, med, gpu = q.get()
+        while True:  # a child that dies (an import error, out of memory) must not hang us
+            try:
+                n_, e, mode, wall, per_iter, rss, mean, med, gpu = q.get(timeout=1.0)
+                break
+            except queue.Empty:
+                if not proc.is_alive():
+                    raise SystemExit(f"bench_scale: the {n}-node run died "
+                                     f"(exit status {proc.exitcode})") from None
         proc.join()
         print(f"| {n_} | {e} | {mode} | {wall:.1f} | {per_iter:.2f} | {rss:.0f} | "
               f"{mean:.3f} | {med:.3f} |" + (f" GPU peak {gpu:.0f} MB" if gpu else ""),

@@ -13,12 +13,13 @@ Shonan+Huber, pycolmap L1/2 (HALF_NORM), GTSAM GNC-TLS from the chordal start, a
 with the odometry edges (``|i - j| == 1``) as known inliers where a case has odometry.
 GNC-TLS's sigma is the case's ``sigma_deg`` (see :class:`~benchmarks.regime_cases.RegimeCase`).
 
-Isolation: every (case, method) runs in a **forked** child process (CPU only) with a time
+Isolation: every (case, method) runs in a **forked** child process with a time
 limit (``--timeout``, default 120 s; a run past it is killed and reported as ``timeout``).
 The parent imports torch, gtsam and pycolmap once but runs no solver, so each child starts
 clean without paying the imports again. Times are each method's own solve call (for GNC-TLS
 and Shonan the chordal start is not timed, as in :mod:`benchmarks.peers`; for ours the whole
-``RotationAverager.solve``).
+``RotationAverager.solve``). Our solver runs on the CPU (CUDA hidden from the child) unless
+``--device cuda`` is given; the peers always run on the CPU.
 
 Summary (issue 14 targets): the count of cases where our median is within 10% (or 0.05 deg)
 of the best peer's median, the count where our mean exceeds 1.5x the best peer's mean,
@@ -86,14 +87,11 @@ class Result:
 # ------------------------------------------------------------------------ running
 
 
-"""The case being run; set in the parent before forking, inherited by the child."""
-
-
 def _solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
                 profile: str = "default") -> tuple[np.ndarray, float, str]:
     g = case.view_graph(keep)
     t0 = time.perf_counter()
-    res = RotationAverager(our_options(profile, device="cpu", **flat)).solve(g)
+    res = RotationAverager(our_options(profile, **flat)).solve(g)
     wall = time.perf_counter() - t0
     rot = np.stack([res.rotations[g.index_of(k)] for k in range(case.num_nodes)])
     note = f"depth {res.depth}, {res.num_filtered} filtered"
@@ -107,15 +105,16 @@ def _solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
     return rot, wall, note
 
 
-def _solve(case: RegimeCase, method: str) -> tuple[np.ndarray, float, str]:
+def _solve(case: RegimeCase, method: str, device: str) -> tuple[np.ndarray, float, str]:
+    ours = {"seed": 0, "device": device}
     if method == OURS:
-        return _solve_ours(case, None, {"seed": 0})
+        return _solve_ours(case, None, ours)
     if method == OURS_PAPER:
-        return _solve_ours(case, None, {"seed": 0}, profile="paper")
+        return _solve_ours(case, None, ours, profile="paper")
     if method == OURS_NOFILTER:
-        return _solve_ours(case, None, {"seed": 0, "use_filter": False})
+        return _solve_ours(case, None, {**ours, "use_filter": False})
     if method == ORACLE:
-        return _solve_ours(case, case.inlier, {"seed": 0})
+        return _solve_ours(case, case.inlier, ours)
     sigma = float(np.radians(case.sigma_deg))
     if method == "gtsam_gnc_tls":
         rot, wall = peers.run_gtsam_gnc_tls(case.num_nodes, case.i, case.j, case.R,
@@ -130,29 +129,31 @@ def _solve(case: RegimeCase, method: str) -> tuple[np.ndarray, float, str]:
     return rot, wall, ""
 
 
-def _child(case: RegimeCase, method: str, q: Any) -> None:
-    os.environ["CUDA_VISIBLE_DEVICES"] = ""
+def _child(case: RegimeCase, method: str, device: str, q: Any) -> None:
+    if device == "cpu":
+        os.environ["CUDA_VISIBLE_DEVICES"] = ""
     try:
-        rot, wall, note = _solve(case, method)
+        rot, wall, note = _solve(case, method, device)
         q.put(("ok", rot, wall, note))
     except Exception as exc:  # a row, the benchmark goes on
         q.put(("error", None, 0.0, f"{type(exc).__name__}: {exc}"[:200]))
 
 
 def run_method(case: RegimeCase, method: str, timeout: float,
-               start_method: str = "fork") -> Result:
+               start_method: str = "fork", device: str = "cpu") -> Result:
     """Run one method on ``case`` in a child process and score it.
 
     ``fork`` (the benchmark's choice: no re-import per run) is safe only from a process that
-    has started no thread pools yet; a process that has (a test session that ran torch)
-    passes ``spawn``.
+    has started no thread pools yet and has not initialised CUDA; a process that has (a test
+    session that ran torch) passes ``spawn``. ``device`` is our solver's (``cpu`` or
+    ``cuda``); the peers ignore it.
     """
     false = 0 if case.inlier is None else int(np.count_nonzero(~case.inlier))
     base: dict[str, Any] = dict(case=case.name, family=case.family, nodes=case.num_nodes,
                                 edges=case.num_edges, method=method, false_edges=false)
     ctx: Any = mp.get_context(start_method)
     q = ctx.Queue()
-    proc = ctx.Process(target=_child, args=(case, method, q))
+    proc = ctx.Process(target=_child, args=(case, method, device, q))
     proc.start()
     try:
         status, rot, wall, note = q.get(timeout=timeout)
@@ -356,6 +357,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="draw the generated cases with this seed (default 0: the record)")
     p.add_argument("--noise-model", choices=NOISE_MODELS, default="folded",
                    help="measurement noise of the generated cases (default folded: the record)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                   help="our solver's device (default cpu; the peers always run on the CPU)")
     args = p.parse_args(argv)
     builders = all_cases(args.seed, args.noise_model)
     names = select(list(builders), args.cases, args.quick)
@@ -386,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
                 r = Result(case.name, case.family, case.num_nodes, case.num_edges, method,
                            "not installed")
             else:
-                r = run_method(case, method, args.timeout)
+                r = run_method(case, method, args.timeout, device=args.device)
             results.append(r)
             print(format_row(r), flush=True)
     total = time.perf_counter() - t_start
@@ -394,7 +397,7 @@ def main(argv: list[str] | None = None) -> int:
     summary = summarize(results)
     if any(r.method == OURS_PAPER for r in results):
         summary += "\n\n" + summarize(results, OURS_PAPER).split("\n")[0]
-    draw = f"seed {args.seed}, {args.noise_model} noise"
+    draw = f"seed {args.seed}, {args.noise_model} noise, ours on {args.device}"
     print(f"\n{summary}\n\ntotal wall time {total:.0f} s for {len(names)} cases ({draw})",
           flush=True)
     if args.markdown:
