@@ -403,6 +403,26 @@ def test_default_profile_finds_the_false_closures_the_sparse_fit_feels() -> None
     assert _median_error(paper.rotations, truth) > 1.02 * oracle_median
 
 
+def test_no_dmf_fit_on_the_re_solves_inliers_where_its_residuals_look_gaussian() -> None:
+    """Sparse mode, robust first, Gaussian noise: the re-solve is the answer without a DMF
+    fit on its inliers (``least_squares_where_gaussian``); with the option off the fit
+    runs, and the choice keeps the re-solve all the same."""
+    i, j, R, truth, bad = _chain(400, 40, 0.2, seed=1)  # Gaussian noise (1 deg per axis)
+    n, w = 400, np.ones(i.size)
+    said: list[str] = []
+    skip = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
+        "default", progress=said.append))
+    fit = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
+        "default", least_squares_where_gaussian=False))
+    assert any(line.startswith("robust first") for line in said)
+    assert any("no DMF fit" in line for line in said)
+    assert skip.depth == 0 and skip.iterations_by_depth == {}
+    assert fit.depth == 2 and fit.iterations_by_depth[2] > 0
+    assert skip.verification == fit.verification == "robust"
+    assert np.array_equal(skip.rotations, fit.rotations)
+    assert np.array_equal(skip.kept, fit.kept) and np.array_equal(~skip.kept, bad)
+
+
 def _chain_with_a_false_group(n: int, closures: int, group: int, seed: int
                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                          np.ndarray]:

@@ -34,7 +34,7 @@ from rotavg_ros.core.dmf.sparse import shows_outliers
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
-from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, residual_shape
+from rotavg_ros.core.robust.noise import looks_gaussian
 from rotavg_ros.core.robust.verify import (
     RobustSolve,
     choose,
@@ -211,17 +211,25 @@ class RotationAverager:
         odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
         robust: RobustSolve | None = None  # the verification's re-solve, run first
         inlier_fit: ComponentSolution | None = None
+        resolve_only = False  # robust first, and no DMF fit: the re-solve is the answer
         chordal: FloatArray | None = None  # sparse mode's start, when computed here
         if (sparse and initial is None and opt.verify.enabled and opt.verify.robust_first
                 and opt.dense.explicit_constraint and i.size >= 3):
             chordal = chordal_rotations(n, fi, fj, fR, fw)
             robust = self._robust_first(n, (i, j, R, w), kept, chordal, starts, odometry)
-            if robust is not None:
-                from_resolve = self._refit_from_resolve(robust.t, robust.inlier)  # (sparse)
-                inlier_fit = self._fit_inliers(
-                    n, i, j, R, w, robust.inlier, robust.rotations if from_resolve else None,
-                    unfiltered=from_resolve)
-        if robust is not None and inlier_fit is not None:
+            if robust is not None and _connects_all(n, i, j, robust.inlier):
+                resolve_only = (opt.verify.least_squares_where_gaussian
+                                and looks_gaussian(robust.t, robust.inlier))
+                if not resolve_only:
+                    from_resolve = self._refit_from_resolve(robust.t, robust.inlier)
+                    inlier_fit = self._fit_inliers(
+                        n, i, j, R, w, robust.inlier,
+                        robust.rotations if from_resolve else None, unfiltered=from_resolve)
+        pruned: tuple[int, ...] = ()
+        if robust is not None and resolve_only:
+            rot, best, costs, iterations = robust.rotations, 0, {}, {}
+            dmf_kept = robust.inlier
+        elif robust is not None and inlier_fit is not None:
             rot, best, costs = inlier_fit.rotations, inlier_fit.depth, inlier_fit.cost_by_depth
             iterations, pruned = inlier_fit.iterations_by_depth, inlier_fit.pruned_depths
             dmf_kept = robust.inlier.copy()
@@ -246,7 +254,8 @@ class RotationAverager:
         max_threshold = math.radians(opt.verify.max_threshold_deg)
         try:
             if robust is not None:
-                out = choose(n, i, j, R, w, robust, rot, dmf_kept, max_threshold)
+                out = choose(n, i, j, R, w, robust, None if resolve_only else rot, dmf_kept,
+                             max_threshold)
             else:
                 out = verify(n, i, j, R, w, rot, kept, starts, known_inlier=odometry,
                              initial_threshold=math.radians(opt.verify.initial_threshold_deg),
@@ -262,7 +271,8 @@ class RotationAverager:
         final = out.rotations
         inlier = out.classified
         if out.chosen == "robust":
-            if inlier_fit is None:  # (else the DMF on these inliers has just lost)
+            if inlier_fit is None and not resolve_only:  # (else the DMF on these inliers
+                # has just lost, or the re-solve's residuals said least squares)
                 from_resolve = sparse and self._refit_from_resolve(out.resolve_t, out.inlier)
                 # A cold, filtered refit on every edge repeats the first fit exactly.
                 repeat = initial is None and not from_resolve and bool(np.all(out.inlier))
@@ -285,7 +295,8 @@ class RotationAverager:
             final[0] = np.eye(3)
         trusted = int(out.known.sum())
         self._say(f"verification: kept the {out.chosen} solution"
-                  f"{' (DMF refit)' if refitted else ''}, noise "
+                  f"{' (DMF refit)' if refitted else ''}"
+                  f"{' (no DMF fit: its residuals look Gaussian)' if resolve_only else ''}, noise "
                   f"{out.noise.sigma_deg:.2f} deg per axis, {int((~inlier).sum())} "
                   f"edges outside, {trusted} odometry edges trusted, {out.relocalized} nodes "
                   "relocalized")
@@ -358,10 +369,7 @@ class RotationAverager:
         standardized inlier residuals ``t`` look Gaussian (:func:`residual_shape`): there
         least squares is the better estimator, and an L1 fit started from it always lowers
         the choice's L1 cost, so it would replace it."""
-        if not self.options.verify.refit_from_resolve:
-            return False
-        shape = residual_shape(t, inlier)
-        return not (math.isfinite(shape) and shape >= GAUSSIAN_SHAPE)
+        return self.options.verify.refit_from_resolve and not looks_gaussian(t, inlier)
 
     def _fit_inliers(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                      keep: BoolArray, initial: FloatArray | None = None,
@@ -369,9 +377,7 @@ class RotationAverager:
         """The DMF (no verification) on the edges ``keep``, from its own start or warm-started
         from ``initial``; None if those edges do not connect every node. ``unfiltered``: no
         edge filter first (the verification has judged these edges already)."""
-        labels = connected_components(coo_matrix(
-            (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
-        if np.any(labels != labels[0]):
+        if not _connects_all(n, i, j, keep):
             return None
         plain = RotationAverager(self.options.replace_flat(
             verify=False, use_filter=self.options.filter.use_filter and not unfiltered))
@@ -666,6 +672,13 @@ def average_rotations(
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
                          time.perf_counter() - t0, iterations, filter_kept, noise,
                          verification, untested, relocalized, trusted, pruned)
+
+
+def _connects_all(n: int, i: IntArray, j: IntArray, keep: BoolArray) -> bool:
+    """Whether the edges ``keep`` connect all ``n`` nodes."""
+    labels = connected_components(coo_matrix(
+        (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
+    return bool(np.all(labels == labels[0]))
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:

@@ -135,3 +135,11 @@ def residual_shape(t: FloatArray, inlier: BoolArray) -> float:
     if r.size < 20 or not np.any(r > 0):
         return math.nan
     return float(np.mean(r) / math.sqrt(float(np.mean(r * r))))
+
+
+def looks_gaussian(t: FloatArray, inlier: BoolArray) -> bool:
+    """Whether the residual angles ``t`` of the ``inlier`` edges look Gaussian
+    (:func:`residual_shape` at least :data:`GAUSSIAN_SHAPE`; False where it is undefined):
+    least squares is then the better estimator on those edges."""
+    shape = residual_shape(t, inlier)
+    return math.isfinite(shape) and shape >= GAUSSIAN_SHAPE

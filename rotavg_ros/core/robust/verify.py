@@ -61,12 +61,11 @@ from rotavg_ros.core.robust.gauss_newton import (
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
 from rotavg_ros.core.robust.noise import (
-    GAUSSIAN_SHAPE,
     NoiseModel,
     fit_noise,
     is_inlier,
     log_likelihood,
-    residual_shape,
+    looks_gaussian,
 )
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
@@ -441,21 +440,25 @@ def robust_resolve(
 @_well_connected_graphs_solved_iteratively
 def choose(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-    robust: RobustSolve, dmf_rotations: FloatArray, dmf_kept: BoolArray,
+    robust: RobustSolve, dmf_rotations: FloatArray | None, dmf_kept: BoolArray,
     max_threshold: float = math.radians(90.0), margin: float = 0.02,
 ) -> VerifyOutcome:
     """Step 6 of the module docstring: the DMF solution (its far-off nodes first moved, if
     that lowers its cost) or the robust re-solve, by the truncated L1 cost over every
     edge; the DMF solution stands unless the re-solve is ``margin`` (relative) better.
     Where the re-solve's standardized inlier residuals look Gaussian
-    (:func:`~.noise.residual_shape` >= :data:`~.noise.GAUSSIAN_SHAPE`) the margin goes the
-    other way: least squares is the better estimator there, and an L1 cost favours the L1
-    fit, so the re-solve stands unless the DMF solution is ``margin`` better."""
+    (:func:`~.noise.looks_gaussian`) the margin goes the other way: least squares is the
+    better estimator there, and an L1 cost favours the L1 fit, so the re-solve stands
+    unless the DMF solution is ``margin`` better. ``dmf_rotations`` None: no DMF solution
+    (the solver fitted none), the re-solve stands."""
     known, cap, tree = robust.known, robust.cap, robust.tree
 
     def cost(rotations: FloatArray) -> float:
         return truncated_l1(rotations, i, j, R, w, cap, known)
 
+    costs = {"robust": cost(robust.rotations)}
+    if dmf_rotations is None:
+        return _resolve_stands(robust, costs)
     # The DMF solution's far-off nodes move the same way (each move lowers its cost); it
     # then rests on the edges it explains, not on the filter's.
     dmf_moved, dmf_moves = relocalize_nodes(dmf_rotations, i, j, R, w, cap, known)
@@ -473,18 +476,23 @@ def choose(
     # fit is the more accurate of the two when both explain the data.
     # A DMF solution that needed nodes moved has no claim to the margin: it did not explain
     # the data by itself.
-    costs = {"robust": cost(robust.rotations), "dmf": cost(dmf_rotations)}
-    if residual_shape(robust.t, robust.inlier) >= GAUSSIAN_SHAPE:  # (NaN: not Gaussian)
+    costs["dmf"] = cost(dmf_rotations)
+    if looks_gaussian(robust.t, robust.inlier):
         dmf_stands = costs["dmf"] < (1.0 - margin) * costs["robust"]
     else:
         dmf_stands = not costs["robust"] < (1.0 - (0.0 if dmf_moves else margin)) * costs["dmf"]
-    if dmf_stands:
-        dmf_noise, classified, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w,
-                                                         dmf_inlier, max_threshold, tree)
-        return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, robust.start,
-                             int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known,
-                             classified | known, robust.t)
+    if not dmf_stands:
+        return _resolve_stands(robust, costs)
+    dmf_noise, classified, t_dmf = _fit_and_classify(dmf_rotations, i, j, R, w, dmf_inlier,
+                                                     max_threshold, tree)
+    return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, robust.start,
+                         int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known,
+                         classified | known, robust.t)
+
+
+def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutcome:
+    """The outcome where the robust re-solve is kept."""
     return VerifyOutcome(robust.rotations, robust.inlier, robust.noise, "robust", costs,
-                         robust.start, int(np.sum(np.isnan(robust.t) & ~tree)), cap,
-                         robust.relocalized, known, robust.inlier, robust.t)
+                         robust.start, int(np.sum(np.isnan(robust.t) & ~robust.tree)),
+                         robust.cap, robust.relocalized, robust.known, robust.inlier, robust.t)
 
