@@ -29,7 +29,8 @@ class SolveResult:
     anchors: list[Hashable]
     """Anchor node id of each component, by label."""
     depth: int
-    """Depth chosen for the largest component (0 when nothing was optimized)."""
+    """Depth chosen for the largest component (0 when no DMF was fitted: no edges, or
+    the verification kept its least-squares re-solve without one)."""
     residuals_deg: FloatArray
     """(E,) angular residual of every consolidated input edge against the solution."""
     edge_inlier: BoolArray
@@ -41,7 +42,8 @@ class SolveResult:
     duration_s: float
     iterations_by_depth: dict[int, int] = field(default_factory=dict)
     """Iterations each depth's fit ran (largest component; dense mode: at most
-    ``iterations``, fewer when stopped early; 0 for the L-BFGS fit of sparse mode)."""
+    ``iterations``, fewer when stopped early; sparse mode: the L-BFGS steps over all its
+    rounds; empty when no DMF was fitted)."""
     num_rejected_verify: int = 0
     """Edges the filter kept and the verification rejected."""
     num_readmitted: int = 0

@@ -591,7 +591,8 @@ class ArraySolution:
     component_anchor: list[int]
     """Anchor node of each component, by label."""
     depth: int
-    """Depth chosen for the largest component (0 if it has no edges)."""
+    """Depth chosen for the largest component (0 if no DMF was fitted, see
+    :attr:`SolveResult.depth`)."""
     kept: BoolArray
     """(E,) whether each edge is an inlier of the final solution."""
     cost_by_depth: dict[int, float]
