@@ -233,8 +233,9 @@ def test_default_profile_gives_the_paper_answer_on_clean_gaussian_data() -> None
     paper = average_rotations(n, i, j, R, w, SolverOptions.for_profile("paper", **fast))
     default = average_rotations(n, i, j, R, w, SolverOptions.for_profile("default", **fast))
     # Gaussian noise: the least-squares re-solve stands against the DMF (choice step 6),
-    # and the DMF refit on its inliers (all edges) then replaces it: the paper's answer.
-    assert default.verification == "robust"
+    # and the DMF refit on its inliers (all edges) then replaces it: the paper's answer,
+    # reported as such.
+    assert default.verification == "dmf_refit"
     assert np.allclose(default.rotations, paper.rotations, atol=1e-9)
     assert 0.7 < default.noise_sigma_deg < 1.4
     assert paper.verification == "" and math.isnan(paper.noise_sigma_deg)
@@ -389,14 +390,15 @@ def _grid(side: int, false_fraction: float, seed: int
 def test_default_profile_finds_the_false_closures_the_sparse_fit_feels() -> None:
     """Sparse mode's Huber fit keeps some pull from gross false closures (the paper
     profile misses the oracle's accuracy); the verification finds every false closure and
-    ends at the oracle's accuracy. (Gaussian noise: the least-squares re-solve stands.)"""
+    ends at the oracle's accuracy. (Gaussian noise: the least-squares re-solve wins the
+    choice, and the DMF refit on its inliers replaces it.)"""
     i, j, R, truth, bad = _grid(5, 0.15, seed=3)
     n, w = 125, np.ones(i.size)
     default = average_rotations(n, i, j, R, w, SolverOptions.for_profile("default"))
     oracle = average_rotations(n, i[~bad], j[~bad], R[~bad], w[~bad],
                                SolverOptions.for_profile("paper"))
     paper = average_rotations(n, i, j, R, w, SolverOptions.for_profile("paper"))
-    assert default.verification == "robust"
+    assert default.verification == "dmf_refit"
     assert not np.any(default.kept & bad)  # every false closure is reported an outlier
     oracle_median = _median_error(oracle.rotations, truth)
     assert _median_error(default.rotations, truth) < 1.005 * oracle_median

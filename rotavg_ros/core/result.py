@@ -61,8 +61,9 @@ class SolveResult:
     """Odometry edges the verification trusted as inliers (option ``odometry``)."""
     verification: str = ""
     """Which solution the verification kept (largest component): ``dmf`` (the filtered
-    DMF), ``robust`` (its re-solve on every edge), ``failed`` (the verification raised;
-    the DMF solution stands) or empty (``paper`` profile)."""
+    DMF), ``robust`` (its least-squares re-solve on every edge), ``dmf_refit`` (the re-solve
+    won the choice and a DMF fitted on its inliers replaced it), ``failed`` (the
+    verification raised; the DMF solution stands) or empty (``paper`` profile)."""
     pruned_depths: tuple[int, ...] = ()
     """Depth candidates the candidate race stopped early (largest component; option
     ``prune_ratio``): never chosen; their ``cost_by_depth`` is of the unfinished fit and

@@ -64,7 +64,8 @@ class ComponentSolution:
     noise_sigma_deg: float = math.nan
     """Per-axis noise of a unit-weight edge estimated by the verification (NaN: not run)."""
     verification: str = ""
-    """Which solution the verification kept: ``dmf``, ``robust``, or empty (not run)."""
+    """Which solution the verification kept: ``dmf``, ``robust``, ``dmf_refit``, ``failed``
+    or empty (not run); see :attr:`SolveResult.verification`."""
     untested: int = 0
     """Loop closures (edges off a spanning tree) that no check could test."""
     relocalized: int = 0
@@ -300,8 +301,9 @@ class RotationAverager:
                   f"{out.noise.sigma_deg:.2f} deg per axis, {int((~inlier).sum())} "
                   f"edges outside, {trusted} odometry edges trusted, {out.relocalized} nodes "
                   "relocalized")
+        kept_solution = "dmf_refit" if out.chosen == "robust" and refitted else out.chosen
         return ComponentSolution(final, inlier, best, costs, iterations, kept,
-                                 out.noise.sigma_deg, out.chosen, out.untested,
+                                 out.noise.sigma_deg, kept_solution, out.untested,
                                  out.relocalized, trusted, pruned)
 
     def _fit_dmf(
@@ -605,7 +607,8 @@ class ArraySolution:
     noise_sigma_deg: float = math.nan
     """Noise per axis estimated by the verification (largest component; NaN: not run)."""
     verification: str = ""
-    """Solution the verification kept for the largest component (``dmf``/``robust``)."""
+    """Solution the verification kept for the largest component (see
+    :attr:`SolveResult.verification`)."""
     untested: int = 0
     """Loop closures no check could test, over all components."""
     relocalized: int = 0
