@@ -237,6 +237,12 @@ class VerifyOptions:
     time (35 of 35 solves; the rotations are bit-identical with the option on and off); the
     fit, cold from the chordal start, ran its whole budget of L-BFGS steps on a 3,000-keyframe
     chain (6.0 s, against 0.67 s without it). Off: the fit runs and the choice judges it."""
+    refit_readmitted: bool = field(default=True, metadata=_flat("refit_readmitted"))
+    """Dense mode: where the DMF solution is kept but most of the edges the verification
+    calls inliers were not in its fit (the filter removed them and the verification
+    re-admitted them), a short DMF fit warm-started from it on those inliers (the warm
+    re-solve's: depth 2, ``warm_iterations`` steps, no filter) replaces it unless its cost
+    is higher. Off: the kept solution stands as fitted."""
     odometry: str = field(default="auto", metadata=_flat("odometry"))
     """Which edges are odometry, trusted as inliers by the re-solve and never capped in the
     choice cost: ``consecutive`` (nodes adjacent in the order they were first added, e.g.

@@ -290,6 +290,13 @@ class RotationAverager:
             final = self._refit_dmf(n, i, j, R, w, inlier, out.rotations, out.cap,
                                     tolerance=REFIT_TOLERANCE, warm=True,
                                     unfiltered=opt.verify.refit_from_resolve)
+        elif (not sparse and opt.verify.refit_readmitted
+              and np.count_nonzero(inlier & ~dmf_kept) > np.count_nonzero(inlier & dmf_kept)):
+            # Most of the edges the kept DMF solution is judged by were not in its fit (the
+            # filter removed them, the verification re-admitted them): fit it again on
+            # them, briefly, from where it stands.
+            final = self._refit_dmf(n, i, j, R, w, inlier, out.rotations, out.cap,
+                                    warm=True, unfiltered=True)
         refitted = final is not out.rotations
         if out.chosen == "robust" or refitted or out.relocalized:  # (the anchor may move)
             final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
