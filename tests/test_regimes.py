@@ -190,24 +190,30 @@ def test_choice_prefers_least_squares_where_the_residuals_look_gaussian() -> Non
 
 
 def test_a_dense_fit_on_few_of_its_inliers_is_fitted_again_on_them() -> None:
-    # The seed-3 draw of sfm/dense100/out50: the filter removes most of the true edges, the
-    # DMF on the rest places part of the graph wrong, the verification moves those nodes
-    # back, re-admits the edges and keeps that solution. Most of its inliers were not in
-    # its fit: with ``refit_readmitted`` a short warm fit on them gets the oracle's
-    # accuracy (without it: 0.29 deg median against the oracle's 0.19).
+    # The seed-3 draw of sfm/dense100/out50: the filter removes most of the true edges and
+    # the verification re-admits them, so most of the kept DMF solution's inliers were not
+    # in its fit. With ``refit_readmitted`` a short warm fit on them replaces it, at the
+    # oracle's accuracy. (Without it, on the 2-core machine, the DMF on the filter's edges
+    # placed part of the graph wrong and the kept solution had 0.29 deg median against the
+    # oracle's 0.19; with other thread counts that fit can land well, so only the refit's
+    # own result is asserted.)
     from rotavg_ros.core.metrics import evaluate
     from rotavg_ros.core.options import SolverOptions
     from rotavg_ros.core.solver import RotationAverager
 
     case = rc.dense_case("sfm/dense100/out50", 100, 50, outliers=0.5, seed=3)
 
-    def median(refit: bool, keep: np.ndarray | None = None) -> float:
+    def solve(refit: bool, keep: np.ndarray | None = None) -> tuple[float, list[str]]:
         g = case.view_graph(keep)
+        said: list[str] = []
         res = RotationAverager(SolverOptions.for_profile(
-            "default", refit_readmitted=refit)).solve(g)
+            "default", refit_readmitted=refit, progress=said.append)).solve(g)
         rot = {k: res.rotations[g.index_of(k)] for k in range(case.num_nodes)}
-        return evaluate(rot, dict(enumerate(case.gt))).median_deg
+        return evaluate(rot, dict(enumerate(case.gt))).median_deg, said
 
-    oracle = median(True, case.inlier)
-    assert median(True) < 1.1 * oracle
-    assert median(False) > 1.3 * oracle
+    oracle, _ = solve(True, case.inlier)
+    median, said = solve(True)
+    assert any("DMF refit" in line and "replaces the solution" in line for line in said)
+    assert median < 1.1 * oracle
+    _, said = solve(False)
+    assert not any("DMF refit" in line for line in said)
