@@ -143,6 +143,33 @@ def test_normal_matrix_is_the_rotated_laplacian() -> None:
                                atol=1e-10)
 
 
+def test_sparse_factors_share_one_elimination_order(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inside ``shared_elimination_order`` a sparse factorization of a Laplacian of the
+    graph (any weights, zero weights included) uses the graph's order and solves the same
+    system; a Laplacian of another node count is ordered afresh."""
+    monkeypatch.setattr(gauss_newton, "DENSE_MAX", 10)  # as if the graph were large
+    rng = np.random.default_rng(5)
+    n = 400  # a chain with random loop closures: sparse, low degree
+    i = np.concatenate([np.arange(n - 1), rng.integers(0, n, 60)])
+    j = np.concatenate([np.arange(1, n), rng.integers(0, n, 60)])
+    keep = i != j
+    i, j = np.minimum(i, j)[keep], np.maximum(i, j)[keep]
+    w = 0.5 + rng.random(i.size)
+    w[(j - i > 1) & (rng.random(i.size) < 0.3)] = 0.0  # GNC's outliers (closures only)
+    active = w > 0
+    L, nodes = _laplacian(n, i[active], j[active], w[active])
+    b = rng.normal(size=(nodes.size, 3))
+    reference = np.linalg.solve(L.toarray(), b)
+    with gauss_newton.shared_elimination_order(n, i, j):
+        shared = Factor(L, nodes, n)
+        other = Factor(L, nodes, n + 1)  # not this graph's node count
+    assert shared.sparse and other.sparse
+    assert shared._perm is not None and other._perm is None
+    np.testing.assert_allclose(shared.solve(b), reference, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(shared.solve(b[:, 0]), reference[:, 0], rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(other.solve(b), reference, rtol=1e-8, atol=1e-10)
+
+
 def test_laplacian_solvers_agree(monkeypatch: pytest.MonkeyPatch) -> None:
     """Dense Cholesky, Jacobi-preconditioned CG (a large well-connected graph) and SuperLU
     (a sparse one) solve the same Laplacian system; a CG that cannot converge falls back
@@ -493,3 +520,21 @@ def test_gnc_per_edge_threshold_matches_a_scalar_one() -> None:
     per_edge = gnc_tls(start, i, j, R, w, np.full(i.size, math.radians(10)))
     assert np.allclose(scalar.rotations, per_edge.rotations)
     assert np.array_equal(scalar.weights, per_edge.weights)
+
+
+def test_gnc_from_a_robust_solution_needs_no_flat_start() -> None:
+    """The second GNC pass (a tight threshold, odometry trusted) from the first pass's
+    solution: starting at ``TIGHT_START_MU`` instead of the flattest surrogate takes fewer
+    stages to the same inliers."""
+    from rotavg_ros.core.robust.verify import GNC_SIGMAS, TIGHT_START_MU, robust_from
+
+    i, j, R, truth, bad = _chain(150, 30, 0.3, seed=4)
+    w = np.ones(i.size)
+    odometry = np.abs(i - j) == 1
+    first, _ = robust_from(truth, i, j, R, w, math.radians(30.0))
+    tight = GNC_SIGMAS * math.radians(1.0) * math.sqrt(3.0)  # 4 sigma of 1 deg per axis
+    flat = gnc_tls(first, i, j, R, w, tight, odometry)
+    warm = gnc_tls(first, i, j, R, w, tight, odometry, mu_min=TIGHT_START_MU)
+    assert np.array_equal(warm.weights, flat.weights)
+    assert not np.any(warm.weights[bad])  # every false closure out
+    assert warm.steps <= flat.steps - 5

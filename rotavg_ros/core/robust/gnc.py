@@ -46,13 +46,16 @@ def gnc_tls(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     c: float | FloatArray,
     known_inlier: BoolArray | None = None, mu_factor: float = 2.0, max_steps: int = 40,
-    gn_iterations: int = 1,
+    gn_iterations: int = 1, mu_min: float = 0.0,
 ) -> GncResult:
     """GNC-TLS from ``rot`` with inlier threshold ``c`` (radians) on the residual angle: one
     for every edge, or one per edge.
 
     ``w`` are the edges' own weights (the TLS weights multiply them). Stops when every
-    weight is binary or after ``max_steps`` surrogate stages.
+    weight is binary or after ``max_steps`` surrogate stages. The first stage's ``mu`` makes
+    every residual of ``rot`` fall in the surrogate's convex part (Yang et al.'s rule),
+    floored at 1e-6 and at ``mu_min`` (a start already near a robust solution needs no
+    flatter surrogate than that).
     """
     known = np.zeros(i.size, bool) if known_inlier is None else np.asarray(known_inlier, bool)
     c = np.broadcast_to(np.asarray(c, float), (i.size,))
@@ -63,7 +66,7 @@ def gnc_tls(
     if r_max2 <= 1.0:  # every residual already within the threshold: plain LS
         mu = np.inf
     else:
-        mu = max(1.0 / max(2.0 * r_max2 - 1.0, 1e-12), 1e-6)
+        mu = max(1.0 / max(2.0 * r_max2 - 1.0, 1e-12), 1e-6, mu_min)
     gw = np.ones(i.size)
     steps = 0
     while True:
