@@ -13,6 +13,8 @@ from rotavg_ros.core.robust import gauss_newton
 from rotavg_ros.core.robust.gauss_newton import (
     Factor,
     _laplacian,
+    edge_residuals,
+    gauss_newton_step,
     jacobi_pcg,
     prediction_variance,
     refine_least_squares,
@@ -22,7 +24,7 @@ from rotavg_ros.core.robust.gnc import gnc_tls
 from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, fit_noise, residual_shape
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.robust.verify import chain_tree, odometry_edges, truncated_l1, verify
-from rotavg_ros.core.so3 import exp_map, random_rotations, rotation_angle
+from rotavg_ros.core.so3 import exp_map, log_map, random_rotations, rotation_angle
 from rotavg_ros.core.solver import average_rotations
 
 
@@ -127,20 +129,30 @@ def test_prediction_variance_matches_the_inverse() -> None:
     assert float(np.sum(w * solved)) == pytest.approx(n - 1, rel=1e-9)
 
 
-def test_normal_matrix_is_the_rotated_laplacian() -> None:
-    """The normal matrix's solver (a solve with the scalar graph Laplacian, rotated in and
-    out) solves the normal equations assembled from their definition."""
+def test_gauss_newton_step_solves_the_normal_equations() -> None:
+    """One Gauss-Newton step (a solve with the scalar graph Laplacian in rotated
+    coordinates) is the step of the normal equations assembled from their definition,
+    ``H d = -sum_e w_e A_e^T e_e`` with node 0 fixed, applied as ``exp(d_i) R_i``."""
     rng = np.random.default_rng(4)
     n = 30
-    rot, i, j = _random_graph(n, 0.2, rng)
+    truth, i, j = _random_graph(n, 0.2, rng)
+    R = _noisy(_relative(truth, i, j), 3.0, rng)
     w = 0.5 + rng.random(i.size)
-    solver = Factor(*_laplacian(n, i, j, w)).normal(rot)
-    free = solver.free
+    rot = np.einsum("nab,nbc->nac", exp_map(rng.normal(size=(n, 3)) * 0.05), truth)
+    rot[0] = truth[0]
+    e = edge_residuals(rot, i, j, R)
+    b = np.zeros((n, 3))
+    for k in range(i.size):  # A_e^T e: (R_j R_i^T)^T e at i, -e at j
+        b[i[k]] += w[k] * (rot[i[k]] @ rot[j[k]].T) @ e[k]
+        b[j[k]] -= w[k] * e[k]
+    free = np.arange(3, 3 * n)
     H = _explicit_normal_matrix(rot, i, j, w)[np.ix_(free, free)]
-    b = rng.normal(size=(free.size, 3))
-    np.testing.assert_allclose(solver.solve(b), np.linalg.solve(H, b), rtol=1e-8, atol=1e-10)
-    np.testing.assert_allclose(solver.solve(b[:, 0]), np.linalg.solve(H, b[:, 0]), rtol=1e-8,
-                               atol=1e-10)
+    d = np.zeros(3 * n)
+    d[free] = np.linalg.solve(H, -b.reshape(-1)[free])
+    new, _ = gauss_newton_step(rot, i, j, R, w)
+    step = log_map(np.einsum("nab,ncb->nac", new, rot))
+    np.testing.assert_allclose(step, d.reshape(n, 3), rtol=1e-7, atol=1e-10)
+    assert np.abs(d).max() > 1e-3  # a step that moves
 
 
 def test_sparse_factors_share_one_elimination_order(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -124,8 +124,7 @@ class Factor:
     """A solver for the graph Laplacian ``L`` on the free nodes ``nodes``: dense Cholesky
     for small or dense graphs, conjugate gradients for large well-connected ones, SuperLU
     (symmetric mode) otherwise, in the current graph's :class:`EliminationOrder` where one
-    is set for ``num_nodes`` nodes. :meth:`normal` turns it into the normal matrix's
-    solver."""
+    is set for ``num_nodes`` nodes."""
 
     def __init__(self, L: Any, nodes: IntArray, num_nodes: int | None = None) -> None:
         self.nodes = nodes
@@ -173,28 +172,6 @@ class Factor:
         x = np.empty_like(b)
         x[self._perm] = self._lu.solve(np.ascontiguousarray(b[self._perm]))
         return x
-
-    def normal(self, rot: FloatArray) -> NormalSolver:
-        """The solver of the normal matrix ``B (L kron I_3) B^T`` at rotations ``rot``."""
-        return NormalSolver(self, rot[self.nodes])
-
-
-class NormalSolver:
-    """``H^-1 b`` on the free coordinates (3 per free node, in node order), ``H`` the
-    normal matrix at the given rotations of the free nodes: ``B (L^-1 kron I_3) B^T b``."""
-
-    def __init__(self, laplacian: Factor, rot: FloatArray) -> None:
-        self.laplacian = laplacian
-        self._rot = rot
-        self.free = (3 * laplacian.nodes[:, None] + np.arange(3)).ravel()
-
-    def solve(self, b: FloatArray) -> FloatArray:
-        """``H^-1 b`` for a vector or the columns of a matrix ``b`` (free coordinates)."""
-        m = self._rot.shape[0]
-        B = b.reshape(m, 3, -1)
-        V = np.swapaxes(self._rot, 1, 2) @ B  # v_i = R_i^T b_i
-        X = self.laplacian.solve(V.reshape(m, -1)).reshape(V.shape)
-        return (self._rot @ X).reshape(b.shape)
 
 
 DENSE_MAX = 1000
