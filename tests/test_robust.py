@@ -25,7 +25,7 @@ from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, fit_noise, residual_sha
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.robust.verify import chain_tree, odometry_edges, truncated_l1, verify
 from rotavg_ros.core.so3 import exp_map, log_map, random_rotations, rotation_angle
-from rotavg_ros.core.solver import average_rotations
+from rotavg_ros.core.solver import ArraySolution, average_rotations
 
 
 def _relative(rot: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -302,15 +302,23 @@ def test_default_profile_solves_a_chain_with_false_closures_like_the_oracle() ->
     assert _mean_error(paper.rotations, truth) > 5 * _mean_error(default.rotations, truth)
 
 
-def test_sparse_mode_runs_the_robust_resolve_first_where_the_chordal_start_shows_outliers(
-) -> None:
-    i, j, R, truth, bad = _chain(200, 24, 1 / 3, seed=6)
-    n, w = 200, np.ones(i.size)
+def _default_with_and_without(
+    i: np.ndarray, j: np.ndarray, R: np.ndarray, n: int, option: str,
+) -> tuple[list[str], ArraySolution, ArraySolution]:
+    """Default-profile solves of a graph (unit weights): ``(its progress lines, the solve,
+    the solve with ``option`` off)``."""
+    w = np.ones(i.size)
     said: list[str] = []
-    first = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
+    on = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
         "default", progress=said.append))
-    after = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
-        "default", robust_first=False))
+    off = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
+        "default", **{option: False}))
+    return said, on, off
+
+
+def test_sparse_mode_runs_the_robust_resolve_first_where_the_chordal_start_shows_outliers() -> None:
+    i, j, R, truth, bad = _chain(200, 24, 1 / 3, seed=6)
+    said, first, after = _default_with_and_without(i, j, R, 200, "robust_first")
     assert any(line.startswith("robust first") for line in said)
     # The same outliers found; the DMF fitted on the inliers alone needs far fewer steps
     # than the fit on every edge from the chordal start the false closures bent.
@@ -320,7 +328,7 @@ def test_sparse_mode_runs_the_robust_resolve_first_where_the_chordal_start_shows
     # A clean chain shows no outlier at its chordal start: the order is fit, then verify.
     clean = ~bad
     said.clear()
-    average_rotations(n, i[clean], j[clean], R[clean], w[clean],
+    average_rotations(200, i[clean], j[clean], R[clean], np.ones(int(clean.sum())),
                       SolverOptions.for_profile("default", progress=said.append))
     assert not any(line.startswith("robust first") for line in said)
     assert any(line.startswith("verification") for line in said)
@@ -449,12 +457,8 @@ def test_no_dmf_fit_on_the_re_solves_inliers_where_its_residuals_look_gaussian()
     fit on its inliers (``least_squares_where_gaussian``); with the option off the fit
     runs, and the choice keeps the re-solve all the same."""
     i, j, R, truth, bad = _chain(400, 40, 0.2, seed=1)  # Gaussian noise (1 deg per axis)
-    n, w = 400, np.ones(i.size)
-    said: list[str] = []
-    skip = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
-        "default", progress=said.append))
-    fit = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
-        "default", least_squares_where_gaussian=False))
+    said, skip, fit = _default_with_and_without(i, j, R, 400,
+                                                "least_squares_where_gaussian")
     assert any(line.startswith("robust first") for line in said)
     assert any("no DMF fit" in line for line in said)
     assert skip.depth == 0 and skip.iterations_by_depth == {}
