@@ -23,7 +23,13 @@ from rotavg_ros.core.robust.gauss_newton import (
 from rotavg_ros.core.robust.gnc import gnc_tls
 from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, fit_noise, residual_shape
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
-from rotavg_ros.core.robust.verify import chain_tree, odometry_edges, truncated_l1, verify
+from rotavg_ros.core.robust.verify import (
+    chain_tree,
+    least_squares_from_relaxation,
+    odometry_edges,
+    truncated_l1,
+    verify,
+)
 from rotavg_ros.core.so3 import exp_map, log_map, random_rotations, rotation_angle
 from rotavg_ros.core.solver import ArraySolution, average_rotations
 
@@ -554,3 +560,26 @@ def test_gnc_from_a_robust_solution_needs_no_flat_start() -> None:
     assert np.array_equal(warm.weights, flat.weights)
     assert not np.any(warm.weights[bad])  # every false closure out
     assert warm.steps <= flat.steps - 5
+
+
+def test_least_squares_leaves_a_twisted_ring_that_the_relaxation_does_not() -> None:
+    # A ring of exact measurements, started with one full turn about z spread along it:
+    # every edge is bent by 360/n deg, a stationary point of least squares (a turn of 2 pi
+    # cannot be undone continuously in SO(3)) that Gauss-Newton does not leave.
+    rng = np.random.default_rng(3)
+    n = 40
+    truth = random_rotations(n, rng)
+    i, j = np.arange(n), (np.arange(n) + 1) % n
+    R = _relative(truth, i, j)
+    w = np.ones(n)
+    twist = exp_map(np.outer(2.0 * math.pi * np.arange(n) / n, [0.0, 0.0, 1.0]).astype(np.float64))
+    rot = refine_least_squares(np.einsum("nab,nbc->nac", truth, twist), i, j, R, w)
+    assert float(residual_angles(rot, i, j, R).min()) > math.radians(5.0)  # still twisted
+    everything = np.ones(n, bool)
+    restarted = least_squares_from_relaxation(rot, i, j, R, w, everything)
+    assert restarted is not None
+    assert float(residual_angles(restarted, i, j, R).max()) < 1e-6
+    assert _mean_error(restarted, truth) < 1e-4
+    # At the global minimum already, or with the inliers in two pieces: nothing to replace.
+    assert least_squares_from_relaxation(restarted, i, j, R, w, everything) is None
+    assert least_squares_from_relaxation(rot, i, j, R, w, np.arange(n) % 20 != 0) is None

@@ -51,6 +51,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
+from rotavg_ros.core.chordal_init import chordal_rotations
 from rotavg_ros.core.filter.edge_filter import tree_rotations
 from rotavg_ros.core.robust.gauss_newton import (
     ITERATIVE_MIN_DEGREE,
@@ -96,6 +97,10 @@ of the consecutive node pairs."""
 P = ParamSpec("P")
 T = TypeVar("T")
 
+RESTART_MARGIN = 1e-6
+""":func:`least_squares_from_relaxation` replaces a least-squares solution only when it fits
+its edges better by more than this (relative): two fits of the same minimum differ by far
+less, and keep the solution as it was."""
 EXACT_LEVERAGE_EDGES = 100
 """At most this many high-leverage edges off the chain tree (loop closures) get their
 prediction variance solved exactly (one Laplacian solve each)."""
@@ -450,7 +455,46 @@ def robust_resolve(
             rot, inlier, noise, t = moved
             relocalized = moves
             cap = _cap(noise, initial_threshold)
+    # Least squares on a sparse graph has local minima (a block of nodes turned the wrong
+    # way, every edge on its rim bent a little): the same inliers from the chordal
+    # relaxation's solution may fit them better.
+    restarted = least_squares_from_relaxation(rot, i, j, R, w, inlier)
+    if restarted is not None:
+        rot = restarted
+        noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold, tree)
+        cap = _cap(noise, initial_threshold)
     return RobustSolve(rot, inlier, noise, t, cap, known, tree, start, relocalized)
+
+
+def least_squares_from_relaxation(
+    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    inlier: BoolArray,
+) -> FloatArray | None:
+    """Least squares on the ``inlier`` edges from the chordal relaxation's solution of them
+    (:func:`~rotavg_ros.core.chordal_init.chordal_rotations`), if it fits them better than
+    ``rot`` (a least-squares fit of the same edges): a weighted sum of squared residual
+    angles lower by more than ``RESTART_MARGIN`` (relative). None where it does not, where
+    the inliers do not connect every node, and on well-connected graphs
+    (:data:`~.gauss_newton.WELL_CONNECTED`: their least squares has no such minima in
+    practice, and the relaxation's sparse factorization would fill in)."""
+    n = rot.shape[0]
+    if WELL_CONNECTED.get() or n < 3 or not inlier.any():
+        return None
+    ii, jj, RR, ww = i[inlier], j[inlier], R[inlier], w[inlier]
+    pieces = connected_components(coo_matrix((np.ones(ii.size), (ii, jj)), shape=(n, n)),
+                                  directed=False)[0]
+    if pieces > 1:
+        return None
+
+    def sse(rotations: FloatArray) -> float:
+        r = residual_angles(rotations, ii, jj, RR)
+        return float(np.sum(ww * r * r))
+
+    start = chordal_rotations(n, ii, jj, RR, ww)
+    candidate = refine_least_squares(start, ii, jj, RR, ww)
+    if sse(candidate) < (1.0 - RESTART_MARGIN) * sse(rot):
+        return candidate
+    return None
 
 
 @_linear_solves_set_for_the_graph
