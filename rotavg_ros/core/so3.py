@@ -102,7 +102,7 @@ def renormalize(M: ArrayLike) -> FloatArray:
     two batched products instead of a batched SVD. A matrix further off (``NEAR_ROTATION``)
     or with det <= 0 is projected by the SVD."""
     M = np.asarray(M, dtype=np.float64)
-    gram = np.swapaxes(M, -1, -2) @ M
+    gram = np.ascontiguousarray(np.swapaxes(M, -1, -2)) @ M  # a copy: faster than a view
     gram -= np.eye(3)
     out = M - 0.5 * (M @ gram)
     det = np.einsum("...i,...i->...", M[..., 0, :], np.cross(M[..., 1, :], M[..., 2, :]))
@@ -164,7 +164,12 @@ def _vee_skew(R: FloatArray) -> FloatArray:
 
 def rotation_angle(R: FloatArray) -> FloatArray:
     """Angle of each rotation in ``[0, pi]`` via ``atan2`` (accurate near 0 and pi)."""
-    s = np.linalg.norm(_vee_skew(R), axis=-1) / 2.0
+    return _angle(R, _vee_skew(R))
+
+
+def _angle(R: FloatArray, v: FloatArray) -> FloatArray:
+    """:func:`rotation_angle` of ``R`` given ``v = _vee_skew(R)``."""
+    s = np.linalg.norm(v, axis=-1) / 2.0
     c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
     return np.arctan2(s, c)
 
@@ -173,7 +178,7 @@ def log_map(R: FloatArray) -> FloatArray:
     """Rotation vectors ``(..., 3)`` with ``exp(hat(v)) = R``, ``|v| <= pi``."""
     R = np.asarray(R, dtype=np.float64)
     v = _vee_skew(R)
-    theta = rotation_angle(R)
+    theta = _angle(R, v)
     s = np.sin(theta)
     small = theta < 1e-6
     # theta / (2 sin theta), with its Taylor series near 0.

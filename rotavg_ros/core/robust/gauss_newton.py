@@ -35,7 +35,10 @@ from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 def edge_residuals(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray) -> FloatArray:
     """``(E, 3)`` rotation vectors ``log(R_ij^T R_i R_j^T)``."""
-    return log_map(np.swapaxes(R, 1, 2) @ rot[i] @ np.swapaxes(rot[j], 1, 2))
+    # Transposed copies, not views: numpy's batched product is several times slower on
+    # strided operands (the same sums either way).
+    rot_t = np.ascontiguousarray(np.swapaxes(rot, 1, 2))
+    return log_map(np.ascontiguousarray(np.swapaxes(R, 1, 2)) @ rot[i] @ rot_t[j])
 
 
 def residual_angles(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray) -> FloatArray:
