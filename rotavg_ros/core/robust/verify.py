@@ -24,7 +24,9 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    here on (known inliers, uncapped in the choice cost); step 3 on the lower-cost result.
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
    (:mod:`.relocalize`); if that lowers the choice cost, step 3 runs again from there. The
-   DMF solution's far-off nodes move the same way.
+   DMF solution's far-off nodes move the same way. Last, on a sparse graph, least squares
+   on the re-solve's inliers from their chordal relaxation replaces the re-solve where it
+   fits them better (:func:`least_squares_from_relaxation`: a least-squares local minimum).
 6. **Choice.** The truncated L1 cost over all input edges decides between the re-solve and
    the DMF solution, which is kept unless the re-solve is clearly (``margin``) better: a
    filter that condemned a subtree, or false closures the DMF bent to fit, lose; a DMF
