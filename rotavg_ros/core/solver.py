@@ -304,7 +304,9 @@ class RotationAverager:
         trusted = int(out.known.sum())
         self._say(f"verification: kept the {out.chosen} solution"
                   f"{' (DMF refit)' if refitted else ''}"
-                  f"{' (no DMF fit: its residuals look Gaussian)' if resolve_only else ''}, noise "
+                  f"{' (no DMF fit: its residuals look Gaussian)' if resolve_only else ''}"
+                  f"{' (least squares restarted from the relaxation)' if out.restarted else ''}"
+                  ", noise "
                   f"{out.noise.sigma_deg:.2f} deg per axis, {int((~inlier).sum())} "
                   f"edges outside, {trusted} odometry edges trusted, {out.relocalized} nodes "
                   "relocalized")

@@ -136,6 +136,8 @@ class VerifyOutcome:
     solution itself shows to be outliers."""
     resolve_t: FloatArray
     """Standardized residuals of the re-solve's final fit (NaN: undetermined)."""
+    restarted: bool = False
+    """The kept re-solve came from :func:`least_squares_from_relaxation` (False for ``dmf``)."""
 
 
 def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> BoolArray:
@@ -359,6 +361,9 @@ class RobustSolve:
     """The start whose GNC-TLS re-solve was kept (``dmf``, ``chain``, or a caller's)."""
     relocalized: int
     """Node moves of :func:`~.relocalize.relocalize_nodes` in the re-solve."""
+    restarted: bool = False
+    """Its least squares was restarted from the chordal relaxation of its inliers, which fit
+    them better (:func:`least_squares_from_relaxation`)."""
 
 
 def verify(
@@ -465,7 +470,8 @@ def robust_resolve(
         rot = restarted
         noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold, tree)
         cap = _cap(noise, initial_threshold)
-    return RobustSolve(rot, inlier, noise, t, cap, known, tree, start, relocalized)
+    return RobustSolve(rot, inlier, noise, t, cap, known, tree, start, relocalized,
+                       restarted is not None)
 
 
 def least_squares_from_relaxation(
@@ -556,5 +562,6 @@ def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutco
     """The outcome where the robust re-solve is kept."""
     return VerifyOutcome(robust.rotations, robust.inlier, robust.noise, "robust", costs,
                          robust.start, int(np.sum(np.isnan(robust.t) & ~robust.tree)),
-                         robust.cap, robust.relocalized, robust.known, robust.inlier, robust.t)
+                         robust.cap, robust.relocalized, robust.known, robust.inlier, robust.t,
+                         robust.restarted)
 
