@@ -38,6 +38,7 @@ from rotavg_ros.core.robust.noise import looks_gaussian
 from rotavg_ros.core.robust.verify import (
     RobustSolve,
     choose,
+    connects_all,
     odometry_edges,
     robust_resolve,
     truncated_l1,
@@ -218,7 +219,7 @@ class RotationAverager:
                 and opt.dense.explicit_constraint and i.size >= 3):
             chordal = chordal_rotations(n, fi, fj, fR, fw)
             robust = self._robust_first(n, (i, j, R, w), kept, chordal, starts, odometry)
-            if robust is not None and _connects_all(n, i, j, robust.inlier):
+            if robust is not None and connects_all(n, i, j, robust.inlier):
                 resolve_only = (opt.verify.least_squares_where_gaussian
                                 and looks_gaussian(robust.t, robust.inlier))
                 if not resolve_only:
@@ -388,7 +389,7 @@ class RotationAverager:
         """The DMF (no verification) on the edges ``keep``, from its own start or warm-started
         from ``initial``; None if those edges do not connect every node. ``unfiltered``: no
         edge filter first (the verification has judged these edges already)."""
-        if not _connects_all(n, i, j, keep):
+        if not connects_all(n, i, j, keep):
             return None
         plain = RotationAverager(self.options.replace_flat(
             verify=False, use_filter=self.options.filter.use_filter and not unfiltered))
@@ -685,13 +686,6 @@ def average_rotations(
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
                          time.perf_counter() - t0, iterations, filter_kept, noise,
                          verification, untested, relocalized, trusted, pruned)
-
-
-def _connects_all(n: int, i: IntArray, j: IntArray, keep: BoolArray) -> bool:
-    """Whether the edges ``keep`` connect all ``n`` nodes."""
-    labels = connected_components(coo_matrix(
-        (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
-    return bool(np.all(labels == labels[0]))
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:

@@ -474,6 +474,13 @@ def robust_resolve(
                        restarted is not None)
 
 
+def connects_all(n: int, i: IntArray, j: IntArray, keep: BoolArray) -> bool:
+    """Whether the edges ``keep`` connect all ``n`` nodes."""
+    labels = connected_components(coo_matrix(
+        (np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n)), directed=False)[1]
+    return bool(np.all(labels == labels[0]))
+
+
 def least_squares_from_relaxation(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     inlier: BoolArray,
@@ -486,13 +493,9 @@ def least_squares_from_relaxation(
     (:data:`~.gauss_newton.WELL_CONNECTED`: their least squares has no such minima in
     practice, and the relaxation's sparse factorization would fill in)."""
     n = rot.shape[0]
-    if WELL_CONNECTED.get() or n < 3 or not inlier.any():
+    if WELL_CONNECTED.get() or n < 3 or not connects_all(n, i, j, inlier):
         return None
     ii, jj, RR, ww = i[inlier], j[inlier], R[inlier], w[inlier]
-    pieces = connected_components(coo_matrix((np.ones(ii.size), (ii, jj)), shape=(n, n)),
-                                  directed=False)[0]
-    if pieces > 1:
-        return None
 
     def sse(rotations: FloatArray) -> float:
         r = residual_angles(rotations, ii, jj, RR)
