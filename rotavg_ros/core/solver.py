@@ -289,8 +289,8 @@ class RotationAverager:
                                         warm=from_resolve, unfiltered=from_resolve,
                                         fitted=rot if repeat else None)
         elif sparse and (np.any(out.inlier & ~inlier) or (
-                opt.verify.refit_readmitted and np.count_nonzero(inlier & ~out.inlier)
-                > READMITTED_SHARE * np.count_nonzero(out.inlier))):
+                opt.verify.refit_readmitted and np.count_nonzero(inlier & ~dmf_kept)
+                > READMITTED_SHARE * np.count_nonzero(dmf_kept))):
             # Sparse mode's Huber fit gives gross outliers an L1 say; where its own
             # residuals show some, fit it again without them, and keep that unless it
             # failed (its cost clearly higher: on the same edges the costs of the two fits
