@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from rotavg_ros.core.chordal_init import chordal_rotations
+from rotavg_ros.core.chordal_init import central_node, chordal_rotations
 from rotavg_ros.core.dmf.common import FitSpec
 from rotavg_ros.core.dmf.precondition import LaplacianPreconditioner
 from rotavg_ros.core.dmf.sparse import fit_symmetric_lbfgs, shows_outliers
@@ -89,3 +89,16 @@ def test_outliers_are_seen_at_the_start() -> None:
     assert not shows_outliers(truth, i, j, R, w, 5.0)
     R[-1] = random_rotations(1, np.random.default_rng(0))[0]  # one false closure
     assert shows_outliers(truth, i, j, R, w, 5.0)
+
+
+def test_chordal_start_is_anchored_at_a_central_node_and_gauged_at_node_0() -> None:
+    # A path 0-1-...-22 (node 0 at one end, as the first keyframe of a trajectory): node 11.
+    i = np.arange(22)
+    j = i + 1
+    assert central_node(23, i, j) == 11
+    # Exact measurements: the chordal solution is the truth, with node 0 the identity.
+    truth = random_rotations(23, np.random.default_rng(0))
+    truth = np.einsum("nab,cb->nac", truth, truth[0])
+    R = np.einsum("eab,ecb->eac", truth[i], truth[j])
+    out = chordal_rotations(23, i, j, R, np.ones(i.size))
+    assert np.degrees(geodesic_distance(out, truth)).max() < 1e-5  # (arccos near 1)

@@ -31,10 +31,11 @@ from rotavg_ros.core.types import FloatArray, IntArray
 def central_node(num_nodes: int, i: IntArray, j: IntArray) -> int:
     """A node near the centre of the graph, by hop count: the middle of a long shortest path.
 
-    Double sweep: the farthest node ``a`` from node 0, then the farthest node ``b`` from ``a``;
-    the node halfway along the BFS path from ``a`` to ``b`` has eccentricity within one hop of
-    half that path's length. Three BFS passes, O(N + E). Nodes not connected to node 0 are
-    ignored.
+    Double sweep: the farthest node ``a`` from node 0, then the farthest node ``b`` from ``a``,
+    and the node halfway along the BFS path from ``a`` to ``b``. On a tree that is the centre
+    (minimum eccentricity); on other graphs it is the usual cheap stand-in for it (on
+    parking-garage: eccentricity 76, the minimum, against node 0's 147). Two BFS passes,
+    O(N + E). Nodes not connected to node 0 are ignored.
     """
     adj = coo_matrix((np.ones(i.size), (i, j)), shape=(num_nodes, num_nodes)).tocsr()
 
@@ -43,7 +44,7 @@ def central_node(num_nodes: int, i: IntArray, j: IntArray) -> int:
         return int(order[-1]), pred
 
     a, _ = sweep(0)
-    b, pred = sweep(a)
+    b, pred = sweep(a)  # (sweep's BFS from ``a`` gives the path back to it)
     path = [b]
     while path[-1] != a:
         path.append(int(pred[path[-1]]))
