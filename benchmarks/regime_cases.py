@@ -507,6 +507,7 @@ def all_cases(seed: int = 0, noise_model: str = "folded") -> dict[str, CaseBuild
         dense("sfm/dense400/out30", 400, 40, outliers=0.3),
         dense("sfm/dense400/out50", 400, 40, outliers=0.5),
         dense("sfm/dense1000/out30", 1000, 16, outliers=0.3),
+        dense("sfm/sparse200/out30", 200, 10, outliers=0.3),
         # Real measurements.
         *(real(g) for g in ("smallGrid3D", "parking-garage", "sphere2500", "torus3D")),
     ]

@@ -539,6 +539,33 @@ def test_relocalize_moves_back_a_node_its_edges_disagree_with() -> None:
     assert truncated_l1(back, i, j, R, w, cap) < truncated_l1(off, i, j, R, w, cap)
 
 
+def test_relocalize_follows_the_edges_that_agree_not_a_margin_on_the_cost() -> None:
+    """A node left on one of its false edges, with six true edges whose noise is a good
+    part of the cap (the other nodes exact, on every pair): its true rotation explains more
+    of its edges and costs less, but by less than one capped edge (the margin of the old
+    move rule, which kept such nodes where they were)."""
+    rng = np.random.default_rng(13)
+    truth = random_rotations(30, rng)
+    a, true_nbrs, false_nbrs = 5, np.arange(10, 16), np.array([20, 21, 22])
+    oi, oj = np.triu_indices(30, 1)
+    others = (oi != a) & (oj != a)
+    own = true_nbrs.size + false_nbrs.size
+    i = np.r_[np.full(own, a), oi[others]]
+    j = np.r_[true_nbrs, false_nbrs, oj[others]]
+    R = _relative(truth, i, j)
+    R[:true_nbrs.size] = _noisy(R[:true_nbrs.size], 2.6, rng)  # about 4.1 deg each
+    R[true_nbrs.size:own] = random_rotations(false_nbrs.size, rng)
+    w = np.ones(i.size)
+    cap = math.radians(5.0)
+    off = truth.copy()
+    off[a] = R[own - 1] @ truth[false_nbrs[-1]]  # on its last (false) edge
+    saving = truncated_l1(off, i, j, R, w, cap) - truncated_l1(truth, i, j, R, w, cap)
+    assert 0.0 < saving < cap
+    back, moves = relocalize_nodes(off, i, j, R, w, cap)
+    assert moves == 1
+    assert math.degrees(rotation_angle(back[a] @ truth[a].T)) < 2.0
+
+
 def test_gnc_per_edge_threshold_matches_a_scalar_one() -> None:
     i, j, R, truth, bad = _chain(120, 20, 0.3, seed=2)
     w = np.ones(i.size)
