@@ -37,7 +37,6 @@ from rotavg_ros.core.robust.gauss_newton import residual_angles
 from rotavg_ros.core.so3 import project_to_so3
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
-
 FAR_CAPS = 2.0
 """A move that explains more edges but does not lower the cost by a whole capped edge must go
 farther than this many caps from the node's rotation (two caps: edges explained there are at

@@ -1,0 +1,114 @@
+"""Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
+
+Thirteen cases outside the record suite of :mod:`benchmarks.regimes`, drawn with the same
+generators at parameters the suite does not use (noise between its levels, denser or
+grouped false closures, a sparse random view graph, a very heavy outlier share). They look
+for regimes the suite misses; a finding that holds across draws becomes a suite case
+(``sfm/sparse200/out30`` came from here). Each case runs ours, the oracle and every
+installed peer as the suite does (:func:`benchmarks.regimes.run_method`: a forked child per
+run, a time limit). One line per case: ``OK`` or ``MISS`` (our median within 10% or 0.05 deg
+of the best peer's), ``MEAN>1.5x`` where our mean is above 1.5x the best peer's, then mean /
+median and time of each method.
+
+    python -m benchmarks.regime_stress [--seed 0] [--noise-model folded] [--json out.json]
+
+Needs the shared data (``../shared`` or ``$ROTAVG_SHARED``); exits with a message without it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from benchmarks import peers
+from benchmarks.datasets import shared_dir_or_say
+from benchmarks.regime_cases import NOISE_MODELS, RegimeCase, chain_case, dense_case, slam_case
+from benchmarks.regimes import GNC_ODO, ORACLE, OURS, PEER_METHODS, Result, run_method
+
+
+def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], RegimeCase]]:
+    """The variants, as builders (each draws its case when called)."""
+    def slam(name: str, graph: str, **extra: Any) -> Callable[[], RegimeCase]:
+        return lambda: slam_case(name, shared, graph, seed=seed, noise_model=model, **extra)
+
+    def chain(name: str, nodes: int, **extra: Any) -> Callable[[], RegimeCase]:
+        return lambda: chain_case(name, nodes, seed=seed, noise_model=model, **extra)
+
+    def dense(name: str, nodes: int, degree: float, **extra: Any) -> Callable[[], RegimeCase]:
+        return lambda: dense_case(name, nodes, degree, seed=seed, noise_model=model, **extra)
+
+    return [
+        slam("stress/torus3D/noise5", "torus3D", noise_deg=5.0),
+        slam("stress/torus3D/noise10+rand5", "torus3D", noise_deg=10.0, random_false=0.05),
+        slam("stress/sphere2500/noise3+rand10", "sphere2500", noise_deg=3.0,
+             random_false=0.10),
+        slam("stress/parking-garage/noise10", "parking-garage", noise_deg=10.0),
+        slam("stress/parking-garage/noise3+grouped", "parking-garage", noise_deg=3.0,
+             groups=8),
+        slam("stress/smallGrid3D/noise5+rand30", "smallGrid3D", noise_deg=5.0,
+             random_false=0.30),
+        slam("stress/torus3D/grouped", "torus3D", groups=10),
+        chain("stress/chain/500/rand30-noise3", 500, closures=30, false_random=0.30,
+              odo_noise_deg=3.0, loop_noise_deg=4.0),
+        chain("stress/chain/2000/grouped40", 2000, closures=60, false_grouped=0.40),
+        chain("stress/chain/300/clean-noise5", 300, closures=20, odo_noise_deg=5.0,
+              loop_noise_deg=5.0),
+        dense("stress/dense200-deg10/out30-noise3", 200, 10, outliers=0.3, noise_deg=3.0),
+        dense("stress/dense400/out30-noise5", 400, 40, outliers=0.3, noise_deg=5.0),
+        dense("stress/dense100/out70", 100, 50, outliers=0.7),
+    ]
+
+
+def verdict(ours: Result, rows: list[Result]) -> str:
+    """``OK`` / ``MISS`` against the best peer's median, and ``MEAN>1.5x`` (or '')."""
+    peer_rows = [r for r in rows if r.method not in (OURS, ORACLE) and r.status == "ok"]
+    if ours.status != "ok" or not peer_rows:
+        return "-"
+    best_median = min(r.median_deg for r in peer_rows)
+    best_mean = min(r.mean_deg for r in peer_rows)
+    ok = ours.median_deg <= 1.1 * best_median or ours.median_deg - best_median <= 0.05
+    return ("OK" if ok else "MISS") + (" MEAN>1.5x" if ours.mean_deg > 1.5 * best_mean else "")
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--noise-model", choices=NOISE_MODELS, default="folded")
+    p.add_argument("--timeout", type=float, default=300.0, help="per case and method, s")
+    p.add_argument("--json", help="write the raw results (no per-node errors) here")
+    args = p.parse_args()
+    shared = shared_dir_or_say("regime_stress")
+    if shared is None:
+        return 0
+    available = peers.available_peers()
+    results: list[Result] = []
+    for build in stress_cases(shared, args.seed, args.noise_model):
+        case = build()
+        rows = []
+        for method in (OURS, ORACLE, *PEER_METHODS):
+            if method == ORACLE and case.inlier is None:
+                continue
+            if method == GNC_ODO and not case.has_odometry:
+                continue
+            if method in PEER_METHODS and not available.get(
+                    "gtsam_gnc_tls" if method == GNC_ODO else method, False):
+                continue
+            rows.append(run_method(case, method, args.timeout))
+        results += rows
+        cells = [f"{r.method} {r.mean_deg:.3f}/{r.median_deg:.3f} {r.wall_s:.2f}s"
+                 if r.status == "ok" else f"{r.method} {r.status}" for r in rows]
+        print(f"{verdict(rows[0], rows):14s} {case.name:36s} " + " | ".join(cells), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps([{**asdict(r), "errors": None}
+                                               for r in results], indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
