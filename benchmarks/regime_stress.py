@@ -30,12 +30,11 @@ from benchmarks import peers
 from benchmarks.datasets import shared_dir_or_say
 from benchmarks.regime_cases import NOISE_MODELS, RegimeCase, chain_case, dense_case, slam_case
 from benchmarks.regimes import (
-    ORACLE,
-    OURS,
     OURS_NOFILTER,
     OURS_PAPER,
     Result,
     methods_for,
+    peer_targets,
     run_method,
 )
 
@@ -75,13 +74,10 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
 
 def verdict(ours: Result, rows: list[Result]) -> str:
     """``OK`` / ``MISS`` against the best peer's median, and ``MEAN>1.5x`` (or '')."""
-    peer_rows = [r for r in rows if r.method not in (OURS, ORACLE) and r.status == "ok"]
-    if ours.status != "ok" or not peer_rows:
+    targets = peer_targets(ours, rows) if ours.status == "ok" else None
+    if targets is None:
         return "-"
-    best_median = min(r.median_deg for r in peer_rows)
-    best_mean = min(r.mean_deg for r in peer_rows)
-    ok = ours.median_deg <= 1.1 * best_median or ours.median_deg - best_median <= 0.05
-    return ("OK" if ok else "MISS") + (" MEAN>1.5x" if ours.mean_deg > 1.5 * best_mean else "")
+    return ("OK" if targets[0] else "MISS") + (" MEAN>1.5x" if targets[1] else "")
 
 
 def main() -> int:

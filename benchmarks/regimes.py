@@ -208,6 +208,17 @@ def best_peer(rows: list[Result], key: str) -> Result | None:
     return min(ok, key=lambda r: getattr(r, key)) if ok else None
 
 
+def peer_targets(ours: Result, rows: list[Result]) -> tuple[bool, bool] | None:
+    """Issue 14's two per-case targets for ``ours`` among a case's ``rows``: (median within
+    10% or 0.05 deg of the best peer's median, mean above 1.5x the best peer's mean); None
+    where no peer ran."""
+    bm, bmean = best_peer(rows, "median_deg"), best_peer(rows, "mean_deg")
+    if bm is None or bmean is None:
+        return None
+    return (ours.median_deg <= max(1.1 * bm.median_deg, bm.median_deg + 0.05),
+            ours.mean_deg > 1.5 * bmean.mean_deg)
+
+
 def summarize(results: list[Result], method: str = OURS) -> str:
     """The issue's target counts and oracle ratios of ``method``, as markdown."""
     by_case: dict[str, list[Result]] = {}
@@ -226,12 +237,12 @@ def summarize(results: list[Result], method: str = OURS) -> str:
             ratio_vals.append(ratio)
             ratios.append(f"| {name} | {ours.median_deg:.3f} | {oracle.median_deg:.3f} | "
                           f"{ratio:.2f} |")
-        if ours is None or bm is None or bmean is None:
+        targets = None if ours is None else peer_targets(ours, rows)
+        if ours is None or bm is None or bmean is None or targets is None:
             continue
         compared += 1
-        if ours.median_deg <= max(1.1 * bm.median_deg, bm.median_deg + 0.05):
-            within += 1
-        if ours.mean_deg > 1.5 * bmean.mean_deg:
+        within += targets[0]
+        if targets[1]:
             worse_mean += 1
             far.append(f"| {name} | {ours.mean_deg:.3f} / {ours.median_deg:.3f} | "
                        f"{bmean.method}: {bmean.mean_deg:.3f} | "
