@@ -21,7 +21,9 @@ takes the solution, not the tree, as the reference, and lets the data set the th
 4. **GNC at the data's threshold.** When step 3 found outliers and ``GNC_SIGMAS`` noise
    scales are below the initial threshold: GNC-TLS again at that threshold from step 3's
    solution and from the odometry chain, the odometry edges (``known_inlier``) trusted from
-   here on (known inliers, uncapped in the choice cost); step 3 on the lower-cost result.
+   here on (known inliers, uncapped in the choice cost); where those two disagree, also from
+   the best of the starts on pairwise-consistent closure sets (:func:`consistent_starts`,
+   :mod:`.closure_consistency`); step 3 on the lowest-cost result.
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
    (:mod:`.relocalize`); if that lowers the choice cost, step 3 runs again from there. The
    DMF solution's far-off nodes move the same way. Last, on a sparse graph, least squares
@@ -55,6 +57,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from rotavg_ros.core.chordal_init import chordal_rotations
 from rotavg_ros.core.filter.edge_filter import tree_rotations
+from rotavg_ros.core.robust.closure_consistency import consistent_closures
 from rotavg_ros.core.robust.gauss_newton import (
     ITERATIVE_MIN_DEGREE,
     WELL_CONNECTED,
@@ -91,6 +94,10 @@ or so stages only walked the solution through near-L1 fits back to where it bega
 regime benchmark's 30 sparse cases with false edges of seeds 0 and 3: the same errors to
 the third decimal, 7-31% fewer Gauss-Newton steps in the re-solve. The pass from the
 odometry chain keeps the flat start: the chain's drift is what it must escape."""
+
+CONSISTENCY_SCALES = (1.0, 0.5, 0.25)
+"""The pairwise closure test of the tight pass runs at the fitted noise scale times each of
+these (see :func:`consistent_starts`)."""
 
 ODOMETRY_COVERAGE = 0.9
 """``odometry="auto"``: consecutive edges are odometry when they join at least this fraction
@@ -436,12 +443,21 @@ def robust_resolve(
         inlier |= known
         # GNC at a tight threshold depends on its start: from step 3's solution and from
         # the odometry chain (which no false closure bends), the lower cost wins; its
-        # inliers then settle.
+        # inliers then settle. Where those two disagree, the result depends on the start,
+        # and the best start from pairwise-consistent closure sets joins them.
         candidates: list[tuple[float, FloatArray, BoolArray]] = []
-        for begin, mu_min in ((rot, TIGHT_START_MU), (chain_rot, 0.0)):
+
+        def tight_from(begin: FloatArray, mu_min: float) -> None:
             tight_rot, tight_inlier = robust_from(begin, i, j, R, w, threshold, known, mu_min)
             if not any(np.array_equal(tight_inlier, c[2]) for c in candidates):
                 candidates.append((cost(tight_rot), tight_rot, tight_inlier))
+
+        tight_from(rot, TIGHT_START_MU)
+        tight_from(chain_rot, 0.0)
+        if len(candidates) > 1:
+            consistent = consistent_starts(num_nodes, i, j, R, w, odometry, noise.sigma)
+            if consistent:  # (the GNC keeps the order of the starts' costs: from the best)
+                tight_from(min(consistent, key=cost), TIGHT_START_MU)
         best = min(candidates, key=lambda c: c[0])
         if not np.array_equal(best[2], inlier):  # else: the same fit as step 3's
             tight = _settle(best[1], i, j, R, w, best[2], known, tree, rounds,
@@ -472,6 +488,27 @@ def robust_resolve(
         cap = _cap(noise, initial_threshold)
     return RobustSolve(rot, inlier, noise, t, cap, known, tree, start, relocalized,
                        restarted is not None)
+
+
+def consistent_starts(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
+                      w: FloatArray, odometry: BoolArray, sigma: float) -> list[FloatArray]:
+    """Starts for the tight GNC that no group of mutually consistent false closures bends:
+    least squares, from their chordal relaxation, on the odometry and a pairwise-consistent
+    set of loop closures (:func:`~.closure_consistency.consistent_closures`), the test run
+    at ``sigma`` times each of ``CONSISTENCY_SCALES`` (a noise scale fitted where false
+    closures bent the solution is too large, and lets a group through). One start per
+    distinct set that drops a closure and connects every node."""
+    starts: list[FloatArray] = []
+    seen: list[BoolArray] = []
+    sigmas = [sigma * scale for scale in CONSISTENCY_SCALES]
+    for keep in consistent_closures(num_nodes, i, j, R, w, odometry, sigmas):
+        if keep.all() or any(np.array_equal(keep, k) for k in seen):
+            continue
+        seen.append(keep)
+        if connects_all(num_nodes, i, j, keep):
+            start = chordal_rotations(num_nodes, i[keep], j[keep], R[keep], w[keep])
+            starts.append(refine_least_squares(start, i, j, R, w * keep))
+    return starts
 
 
 def connects_all(n: int, i: IntArray, j: IntArray, keep: BoolArray) -> bool:

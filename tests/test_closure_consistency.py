@@ -1,0 +1,47 @@
+"""Pairwise consistency of loop closures over an odometry chain (closure_consistency)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from benchmarks import regime_cases as rc
+from rotavg_ros.core.robust.closure_consistency import consistent_closures, odometry_rotations
+
+
+def test_odometry_rotations_compose_the_chain_and_split_at_gaps() -> None:
+    rng = np.random.default_rng(0)
+    gt = rc.chain_trajectory(6, rng)
+    i = np.array([0, 1, 3, 4, 0])
+    j = np.array([1, 2, 4, 5, 3])
+    R = rc.relative(gt, i, j)
+    odometry = np.array([True, True, True, True, False])  # 2 -- 3 missing: two pieces
+    Q, piece = odometry_rotations(6, i, j, R, odometry)
+    assert piece.tolist() == [0, 0, 0, 1, 1, 1]
+    for k in (1, 2):  # R_k R_0^T exactly, within the first piece
+        assert np.allclose(Q[k], gt[k] @ gt[0].T)
+    assert np.allclose(Q[3], np.eye(3))
+    assert np.allclose(Q[5], gt[5] @ gt[3].T)
+
+
+def test_a_group_of_consistent_false_closures_is_dropped_and_the_true_ones_kept() -> None:
+    # 600 keyframes, 20 true closures and 14 false ones in groups of 4-8 that agree with
+    # each other: every false closure goes, at most one true one with it.
+    case = rc.chain_case("test/pcm", 600, closures=20, false_grouped=0.4, seed=3)
+    assert case.inlier is not None
+    odometry = case.odometry
+    w = np.ones(case.num_edges)
+    sigma = np.radians(1.5) / np.sqrt(3.0)  # the generator's noise, per axis
+    keep = consistent_closures(case.num_nodes, case.i, case.j, case.R, w, odometry,
+                               [sigma])[0]
+    assert keep[odometry].all()
+    assert not keep[~case.inlier].any()
+    assert np.count_nonzero(~keep & case.inlier) <= 1
+
+
+def test_nothing_is_dropped_without_odometry_or_a_noise_scale() -> None:
+    case = rc.chain_case("test/pcm", 300, closures=10, false_grouped=0.4, seed=1)
+    w = np.ones(case.num_edges)
+    none = np.zeros(case.num_edges, bool)
+    assert consistent_closures(case.num_nodes, case.i, case.j, case.R, w, none, [0.01])[0].all()
+    assert consistent_closures(case.num_nodes, case.i, case.j, case.R, w, case.odometry,
+                               [float("nan")])[0].all()
