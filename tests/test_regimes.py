@@ -170,16 +170,13 @@ def test_default_profile_places_every_node_of_a_dense_graph_with_half_outliers()
     assert ours.mean() < 1.25 * best.mean()
 
 
-def test_default_profile_places_the_nodes_of_a_sparse_random_graph_with_false_edges() -> None:
-    """Mean degree 10, 30% of the edges random (the suite's sfm/sparse200/out30 drawn with
-    seed 2): nodes with most of their edges true but left on a false one move back (the
-    relocalization's far moves that explain more edges); before, nine nodes stayed up to
-    170 deg off."""
+def default_and_oracle_errors(case: rc.RegimeCase) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(kept, ours, oracle)``: the default profile's kept edges and per-node errors (deg) on
+    ``case``, and the per-node errors of the same solve on its true edges only."""
     from rotavg_ros.core.metrics import evaluate
     from rotavg_ros.core.options import SolverOptions
     from rotavg_ros.core.solver import average_rotations
 
-    case = rc.dense_case("sfm/sparse200/out30", 200, 10, outliers=0.3, seed=2)
     assert case.inlier is not None
     w = np.ones(case.num_edges)
     t = case.inlier
@@ -189,6 +186,16 @@ def test_default_profile_places_the_nodes_of_a_sparse_random_graph_with_false_ed
                                SolverOptions.for_profile("default"))
     ours = evaluate(dict(enumerate(default.rotations)), dict(enumerate(case.gt))).errors
     best = evaluate(dict(enumerate(oracle.rotations)), dict(enumerate(case.gt))).errors
+    return default.kept, ours, best
+
+
+def test_default_profile_places_the_nodes_of_a_sparse_random_graph_with_false_edges() -> None:
+    """Mean degree 10, 30% of the edges random (the suite's sfm/sparse200/out30 drawn with
+    seed 2): nodes with most of their edges true but left on a false one move back (the
+    relocalization's far moves that explain more edges); before, nine nodes stayed up to
+    170 deg off."""
+    case = rc.dense_case("sfm/sparse200/out30", 200, 10, outliers=0.3, seed=2)
+    _, ours, best = default_and_oracle_errors(case)
     assert ours.max() < 5.0
     assert ours.mean() < 1.25 * best.mean()
 
@@ -198,22 +205,11 @@ def test_default_profile_rejects_groups_of_consistent_false_closures_on_a_chain(
     groups of 4-8 (regime_stress's chain/2000/grouped40, seed 0). Before the pairwise
     closure test's starts, the re-solve kept 17 false closures, bent the odometry, and
     ended at 9.25 deg mean against the oracle's 4.13."""
-    from rotavg_ros.core.metrics import evaluate
-    from rotavg_ros.core.options import SolverOptions
-    from rotavg_ros.core.solver import average_rotations
-
     case = rc.chain_case("stress/chain/2000/grouped40", 2000, closures=60,
                          false_grouped=0.40, seed=0)
     assert case.inlier is not None
-    w = np.ones(case.num_edges)
-    t = case.inlier
-    default = average_rotations(case.num_nodes, case.i, case.j, case.R, w,
-                                SolverOptions.for_profile("default"))
-    oracle = average_rotations(case.num_nodes, case.i[t], case.j[t], case.R[t], w[t],
-                               SolverOptions.for_profile("default"))
-    ours = evaluate(dict(enumerate(default.rotations)), dict(enumerate(case.gt))).errors
-    best = evaluate(dict(enumerate(oracle.rotations)), dict(enumerate(case.gt))).errors
-    assert np.count_nonzero(default.kept & ~t) <= 2
+    kept, ours, best = default_and_oracle_errors(case)
+    assert np.count_nonzero(kept & ~case.inlier) <= 2
     assert ours.mean() < 1.1 * best.mean()
 
 
