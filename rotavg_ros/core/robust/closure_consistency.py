@@ -29,6 +29,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from rotavg_ros.core.filter.edge_filter import tree_rotations
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 CHI2_3_999 = 16.27
@@ -46,22 +47,13 @@ _ROWS = 1024  # pairs are tested in blocks of this many rows
 def odometry_rotations(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
                        odometry: BoolArray) -> tuple[FloatArray, IntArray]:
     """``(Q, piece)``: world-to-node rotations composed along the odometry chain
-    (``R_{k+1} = R_{k,k+1}^T R_k``; the first node of each unbroken piece is identity), and
-    the piece of each node (nodes ``k``, ``k + 1`` share a piece when the odometry joins
-    them)."""
-    step = np.tile(np.eye(3), (num_nodes, 1, 1))  # step[k]: R_{k,k+1}
+    (:func:`~rotavg_ros.core.filter.edge_filter.tree_rotations` over the odometry edges; the
+    first node of each unbroken piece is identity), and the piece of each node (nodes ``k``,
+    ``k + 1`` share a piece when the odometry joins them)."""
     linked = np.zeros(num_nodes, bool)  # linked[k]: k -- k+1 is odometry
-    oi, oj, oR = i[odometry], j[odometry], R[odometry]
-    forward = oi < oj
-    low = np.where(forward, oi, oj)
-    step[low] = np.where(forward[:, None, None], oR, oR.transpose(0, 2, 1))
-    linked[low] = True
+    linked[np.minimum(i[odometry], j[odometry])] = True
     piece = np.concatenate([[0], np.cumsum(~linked[:-1])]).astype(np.int64)
-    Q = np.empty((num_nodes, 3, 3))
-    Q[0] = np.eye(3)
-    for k in range(1, num_nodes):
-        Q[k] = step[k - 1].T @ Q[k - 1] if linked[k - 1] else np.eye(3)
-    return Q, piece
+    return tree_rotations(i, j, R, np.flatnonzero(odometry), num_nodes), piece
 
 
 def consistent_closures(
