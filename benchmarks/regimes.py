@@ -102,6 +102,8 @@ def _solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
             note += f", {res.num_relocalized} relocalized"
         if res.num_trusted_odometry:
             note += f", {res.num_trusted_odometry} odometry trusted"
+        if res.num_runs_left_out:
+            note += f", {res.num_runs_left_out} closure runs left out"
     return rot, wall, note
 
 

@@ -66,6 +66,7 @@ def diagnostic_values(
             "rejected_by_verification": result.num_rejected_verify,
             "readmitted_by_verification": result.num_readmitted,
             "relocalized_by_verification": result.num_relocalized,
+            "closure_runs_left_out": result.num_runs_left_out,
             "trusted_odometry_edges": result.num_trusted_odometry,
             "verification": result.verification or "off",
             "noise_sigma_deg": result.noise_sigma_deg,

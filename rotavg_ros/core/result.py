@@ -57,6 +57,9 @@ class SolveResult:
     the verification tests every edge on a cycle."""
     num_relocalized: int = 0
     """Nodes the verification moved to where their own edges agree (relocalization)."""
+    num_runs_left_out: int = 0
+    """Runs of mutually consistent loop closures (between the same two stretches of the
+    trajectory) that the verification left out as wholes: perceptual aliasing."""
     num_trusted_odometry: int = 0
     """Odometry edges the verification trusted as inliers (option ``odometry``)."""
     verification: str = ""

@@ -75,6 +75,8 @@ class ComponentSolution:
     """Odometry edges the verification trusted as inliers."""
     pruned_depths: tuple[int, ...] = ()
     """Depth candidates the candidate race stopped early (never chosen)."""
+    runs_left_out: int = 0
+    """Runs of loop closures the verification's re-solve left out as wholes."""
 
 
 READMITTED_SHARE = 0.05
@@ -184,6 +186,7 @@ class RotationAverager:
             verification=out.verification,
             num_untested=out.untested,
             num_relocalized=out.relocalized,
+            num_runs_left_out=out.runs_left_out,
             num_trusted_odometry=out.trusted,
             cost_by_depth=out.cost_by_depth,
             duration_s=out.duration_s,
@@ -322,11 +325,12 @@ class RotationAverager:
                   ", noise "
                   f"{out.noise.sigma_deg:.2f} deg per axis, {int((~inlier).sum())} "
                   f"edges outside, {trusted} odometry edges trusted, {out.relocalized} nodes "
-                  "relocalized")
+                  f"relocalized, {out.runs_left_out} runs of loop closures left out")
         kept_solution = "dmf_refit" if out.chosen == "robust" and refitted else out.chosen
         return ComponentSolution(final, inlier, best, costs, iterations, kept,
                                  out.noise.sigma_deg, kept_solution, out.untested,
-                                 out.relocalized, trusted, pruned)
+                                 out.relocalized, trusted, pruned,
+                                 runs_left_out=out.runs_left_out)
 
     def _fit_dmf(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool,
@@ -639,6 +643,8 @@ class ArraySolution:
     """Odometry edges the verification trusted, over all components."""
     pruned_depths: tuple[int, ...] = ()
     """Depth candidates the candidate race stopped early (largest component)."""
+    runs_left_out: int = 0
+    """Runs of loop closures the verification left out as wholes, over all components."""
 
 
 def average_rotations(
@@ -668,6 +674,7 @@ def average_rotations(
     depth, costs, iterations, best_size = 0, {}, {}, 0
     pruned: tuple[int, ...] = ()
     noise, verification, untested, relocalized, trusted = math.nan, "", 0, 0, 0
+    runs_left_out = 0
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
         if label == 0 and anchor in nodes:
@@ -690,6 +697,7 @@ def average_rotations(
         filter_kept[sel] = sol.filter_kept
         untested += sol.untested
         relocalized += sol.relocalized
+        runs_left_out += sol.runs_left_out
         trusted += sol.trusted
         if nodes.size > best_size:
             depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
@@ -697,7 +705,7 @@ def average_rotations(
             noise, verification = sol.noise_sigma_deg, sol.verification
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
                          time.perf_counter() - t0, iterations, filter_kept, noise,
-                         verification, untested, relocalized, trusted, pruned)
+                         verification, untested, relocalized, trusted, pruned, runs_left_out)
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:

@@ -23,7 +23,9 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    solution and from the odometry chain, the odometry edges (``known_inlier``) trusted from
    here on (known inliers, uncapped in the choice cost); where those two disagree, also from
    the best of the starts on pairwise-consistent closure sets (:func:`consistent_starts`,
-   :mod:`.closure_consistency`); step 3 on the lowest-cost result.
+   :mod:`.closure_consistency`); step 3 on the lowest-cost result. Then runs of loop
+   closures that pull the fit all one way (:mod:`.closure_runs`) are left out where that
+   lowers the choice cost (:func:`_leave_runs_out`).
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
    (:mod:`.relocalize`); if that lowers the choice cost, step 3 runs again from there. The
    DMF solution's far-off nodes move the same way. Last, on a sparse graph, least squares
@@ -58,6 +60,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from rotavg_ros.core.chordal_init import chordal_rotations
 from rotavg_ros.core.filter.edge_filter import tree_rotations
 from rotavg_ros.core.robust.closure_consistency import consistent_closures
+from rotavg_ros.core.robust.closure_runs import suspect_runs
 from rotavg_ros.core.robust.gauss_newton import (
     ITERATIVE_MIN_DEGREE,
     WELL_CONNECTED,
@@ -98,6 +101,11 @@ odometry chain keeps the flat start: the chain's drift is what it must escape.""
 CONSISTENCY_SCALES = (1.0, 0.5, 0.25)
 """The pairwise closure test of the tight pass runs at the fitted noise scale times each of
 these (see :func:`consistent_starts`)."""
+
+RUN_ROUNDS = 3
+"""The tight pass judges runs of closures (:mod:`.closure_runs`) up to this many times: each
+time every suspect run, the most suspect first, is left out where that lowers the choice
+cost, and the runs are judged again on the new fit if any was."""
 
 ODOMETRY_COVERAGE = 0.9
 """``odometry="auto"``: consecutive edges are odometry when they join at least this fraction
@@ -145,6 +153,9 @@ class VerifyOutcome:
     """Standardized residuals of the re-solve's final fit (NaN: undetermined)."""
     restarted: bool = False
     """The kept re-solve came from :func:`least_squares_from_relaxation` (False for ``dmf``)."""
+    runs_left_out: int = 0
+    """Runs of loop closures the re-solve left out as wholes (:mod:`.closure_runs`), whichever
+    solution is kept."""
 
 
 def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> BoolArray:
@@ -371,6 +382,8 @@ class RobustSolve:
     restarted: bool = False
     """Its least squares was restarted from the chordal relaxation of its inliers, which fit
     them better (:func:`least_squares_from_relaxation`)."""
+    runs_left_out: int = 0
+    """Runs of loop closures the tight pass left out as wholes (:mod:`.closure_runs`)."""
 
 
 def verify(
@@ -409,6 +422,7 @@ def robust_resolve(
     start) and ``starts`` (name -> rotations), and the noise scale it shows."""
     odometry = np.zeros(i.size, bool) if known_inlier is None else known_inlier
     known = np.zeros(i.size, bool)  # trusted edges: none until the noise scale is known
+    runs_left_out = 0
 
     def cost(rotations: FloatArray) -> float:
         return truncated_l1(rotations, i, j, R, w, cap, known)
@@ -465,6 +479,12 @@ def robust_resolve(
             if cost(tight[0]) < cost(rot):
                 rot, inlier, noise, t = tight
         cap = _cap(noise, initial_threshold)
+        # Runs of consistent false closures the pairwise test could not reach (the odometry
+        # between them and the true closures is long) pull the fit all one way.
+        rot, inlier, noise, t, runs_left_out = _leave_runs_out(
+            rot, i, j, R, w, inlier, noise, t, known, tree, rounds, max_threshold,
+            initial_threshold)
+        cap = _cap(noise, initial_threshold)
     relocalized = 0
     # Nodes the re-solve left far off (all their true edges dropped) move to where their
     # own edges agree, if that lowers the choice cost; the inliers then settle again.
@@ -487,7 +507,38 @@ def robust_resolve(
         noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold, tree)
         cap = _cap(noise, initial_threshold)
     return RobustSolve(rot, inlier, noise, t, cap, known, tree, start, relocalized,
-                       restarted is not None)
+                       restarted is not None, runs_left_out)
+
+
+def _leave_runs_out(
+    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    inlier: BoolArray, noise: NoiseModel, t: FloatArray, known: BoolArray, tree: BoolArray,
+    rounds: int, max_threshold: float, initial_threshold: float,
+) -> tuple[FloatArray, BoolArray, NoiseModel, FloatArray, int]:
+    """Step 4's last part: up to ``RUN_ROUNDS`` times, each suspect run of loop closures
+    (:func:`~.closure_runs.suspect_runs` on the least-squares fit ``rot`` of ``inlier``), the
+    most suspect first, leaves the fit where least squares without it, then step 3, lowers
+    the choice cost (at the cap of the round's noise scale). Returns the fit as step 3
+    does, and the number of runs left out."""
+    left_out = 0
+    for _ in range(RUN_ROUNDS):
+        cost = functools.partial(truncated_l1, i=i, j=j, R=R, w=w,
+                                 c=_cap(noise, initial_threshold), trusted=known)
+        before = left_out
+        for run in suspect_runs(rot, i, j, R, w, inlier, ~known, noise.sigma):
+            trial = inlier.copy()
+            trial[run] = False
+            without = refine_least_squares(rot, i, j, R, w * trial)
+            if not cost(without) < cost(rot):  # (settling would not save it: a true run's
+                continue  # closures each cost a cap once it is out)
+            settled = _settle(without, i, j, R, w, trial, known, tree, rounds, max_threshold,
+                              initial_threshold)
+            if cost(settled[0]) < cost(rot):
+                rot, inlier, noise, t = settled
+                left_out += 1
+        if left_out == before:  # (else the runs are judged again on the new fit)
+            break
+    return rot, inlier, noise, t, left_out
 
 
 def consistent_starts(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
@@ -595,7 +646,8 @@ def choose(
                                                      max_threshold, tree)
     return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, robust.start,
                          int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known,
-                         classified | known, robust.t)
+                         classified | known, robust.t,
+                         runs_left_out=robust.runs_left_out)
 
 
 def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutcome:
@@ -603,5 +655,5 @@ def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutco
     return VerifyOutcome(robust.rotations, robust.inlier, robust.noise, "robust", costs,
                          robust.start, int(np.sum(np.isnan(robust.t) & ~robust.tree)),
                          robust.cap, robust.relocalized, robust.known, robust.inlier, robust.t,
-                         robust.restarted)
+                         robust.restarted, robust.runs_left_out)
 
