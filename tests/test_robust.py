@@ -12,7 +12,7 @@ from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.robust import gauss_newton
 from rotavg_ros.core.robust.gauss_newton import (
     Factor,
-    _laplacian,
+    anchored_laplacian,
     edge_residuals,
     gauss_newton_step,
     jacobi_pcg,
@@ -175,7 +175,7 @@ def test_sparse_factors_share_one_elimination_order(monkeypatch: pytest.MonkeyPa
     w = 0.5 + rng.random(i.size)
     w[(j - i > 1) & (rng.random(i.size) < 0.3)] = 0.0  # GNC's outliers (closures only)
     active = w > 0
-    L, nodes = _laplacian(n, i[active], j[active], w[active])
+    L, nodes = anchored_laplacian(n, i[active], j[active], w[active])
     b = rng.normal(size=(nodes.size, 3))
     reference = np.linalg.solve(L.toarray(), b)
     with gauss_newton.shared_elimination_order(n, i, j):
@@ -197,7 +197,7 @@ def test_laplacian_solvers_agree(monkeypatch: pytest.MonkeyPatch) -> None:
     ii, jj = np.triu_indices(n, 1)
     keep = rng.random(ii.size) < 0.07  # mean degree about 25
     i, j = ii[keep], jj[keep]
-    L, nodes = _laplacian(n, i, j, 0.5 + rng.random(i.size))
+    L, nodes = anchored_laplacian(n, i, j, 0.5 + rng.random(i.size))
     b = rng.normal(size=(nodes.size, 4))
     reference = np.linalg.solve(L.toarray(), b)
     dense = Factor(L, nodes)

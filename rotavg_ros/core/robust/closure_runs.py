@@ -34,7 +34,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.special import chdtri
 
-from rotavg_ros.core.robust.gauss_newton import Factor, _laplacian, edge_residuals
+from rotavg_ros.core.robust.gauss_newton import Factor, anchored_laplacian, edge_residuals
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 RUN_GAP = 2
@@ -92,7 +92,7 @@ def run_pull(
     out = np.full(len(runs), np.nan)
     n = rot.shape[0]
     fit = w > 0
-    L, nodes = _laplacian(n, i[fit], j[fit], w[fit])
+    L, nodes = anchored_laplacian(n, i[fit], j[fit], w[fit])
     if not nodes.size or not runs:
         return out
     row = np.full(n, -1)

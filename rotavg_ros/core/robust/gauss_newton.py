@@ -46,7 +46,8 @@ def residual_angles(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray) ->
     return np.linalg.norm(edge_residuals(rot, i, j, R), axis=-1)
 
 
-def _laplacian(n: int, i: IntArray, j: IntArray, w: FloatArray) -> tuple[Any, IntArray]:
+def anchored_laplacian(n: int, i: IntArray, j: IntArray, w: FloatArray,
+                       ) -> tuple[Any, IntArray]:
     """``(L on the free nodes (CSC), free nodes)``: the weighted graph Laplacian, without
     the anchor (node 0) and the nodes no weighted edge reaches (+ 1e-12 on the diagonal: no
     exactly singular matrix)."""
@@ -86,7 +87,8 @@ class EliminationOrder:
             i, j = self._edges
             n = self.num_nodes
             keep = (i != j) & (i < n) & (j < n)
-            L, nodes = _laplacian(n, i[keep], j[keep], np.ones(int(keep.sum())))
+            L, nodes = anchored_laplacian(n, i[keep], j[keep],
+                                          np.ones(int(keep.sum())))
             rank = np.zeros(n, np.int64)
             if nodes.size:
                 perm = splu(L, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
@@ -271,7 +273,7 @@ def gauss_newton_step(
         return rot.copy(), None
     e = edge_residuals(rot, i, j, R) if residuals is None else residuals[active]
     if laplacian is None:
-        L, nodes = _laplacian(n, i, j, w)
+        L, nodes = anchored_laplacian(n, i, j, w)
         if nodes.size == 0:
             return rot.copy(), None
         laplacian = Factor(L, nodes, n)
@@ -318,7 +320,7 @@ def prediction_variance(
     if n < 2 or not active.any():
         return q
     ai, aj, aw = i[active], j[active], w[active]
-    L, nodes = _laplacian(n, ai, aj, aw)
+    L, nodes = anchored_laplacian(n, ai, aj, aw)
     if not nodes.size:
         return q
     laplacian = Factor(L, nodes, n)
