@@ -18,11 +18,12 @@ matrix is ``B (L kron I_3) B^T``), an edge's whitened residual in world coordina
 ``u_e = sqrt(w_e) R_j^T e_e``, moves by ``sqrt(w_e) (v_i - v_j)``, the same on each axis. A
 run's common pull is ``p_S = s^T U_S`` with ``s = sqrt(w_S) / |sqrt(w_S)|``; with noise
 ``sigma`` per axis the fit leaves it the variance ``sigma^2 (1 - h_S)`` per axis, where
-``h_S = y_S^T L^-1 y_S``, ``y_S = sum_e w_e (u_a - u_b) / |sqrt(w_S)|`` (one Laplacian solve
-per run). So ``T_S = |p_S|^2 / (1 - h_S)`` is ``sigma^2`` times a chi-square with 3 degrees of
-freedom for a run of true closures; it is also how much lower the weighted sum of squares
-would be if the run's common pull were freed (the deletion of one combined observation). A
-run far above that (``RUN_QUANTILE``, over all the fit's runs) is suspect.
+``h_S = y_S^T L^-1 y_S`` and ``y_S = sum_e w_e (1_a - 1_b) / |sqrt(w_S)|`` (``1_a``: the
+indicator vector of node ``a``; one Laplacian solve per run). So ``T_S = |p_S|^2 / (1 - h_S)``
+is ``sigma^2`` times a chi-square with 3 degrees of freedom for a run of true closures; it
+is also how much lower the weighted sum of squares would be if the run's common pull were
+freed (the deletion of one combined observation). A run far above that (``RUN_QUANTILE``,
+over all the fit's runs) is suspect.
 
 Conventions: world-to-node ``R_i``, ``R_ij ~= R_i R_j^T``, node 0 fixed (anchor).
 """
@@ -99,7 +100,7 @@ def run_pull(
     row[nodes] = np.arange(nodes.size)
     e = edge_residuals(rot, i, j, R)
     u = np.einsum("eba,eb->ea", rot[j], e) * np.sqrt(w)[:, None]  # sqrt(w) R_j^T e
-    # y_S = sum_e w_e (u_a - u_b) / |sqrt(w_S)| (one column per run), L^-1 y_S and
+    # y_S = sum_e w_e (1_a - 1_b) / |sqrt(w_S)| (one column per run), L^-1 y_S and
     # h_S = y_S^T L^-1 y_S, a block of runs at a time.
     members = np.concatenate(runs)
     column = np.repeat(np.arange(len(runs)), [r.size for r in runs])
