@@ -478,7 +478,6 @@ def robust_resolve(
                             max_threshold, initial_threshold)
             if cost(tight[0]) < cost(rot):
                 rot, inlier, noise, t = tight
-        cap = _cap(noise, initial_threshold)
         # Runs of consistent false closures the pairwise test could not reach (the odometry
         # between them and the true closures is long) pull the fit all one way.
         rot, inlier, noise, t, runs_left_out = _leave_runs_out(
@@ -525,16 +524,19 @@ def _leave_runs_out(
         cost = functools.partial(truncated_l1, i=i, j=j, R=R, w=w,
                                  c=_cap(noise, initial_threshold), trusted=known)
         before = left_out
+        current = cost(rot)
         for run in suspect_runs(rot, i, j, R, w, inlier, ~known, noise.sigma):
             trial = inlier.copy()
             trial[run] = False
             without = refine_least_squares(rot, i, j, R, w * trial)
-            if not cost(without) < cost(rot):  # (settling would not save it: a true run's
+            if not cost(without) < current:  # (settling would not save it: a true run's
                 continue  # closures each cost a cap once it is out)
             settled = _settle(without, i, j, R, w, trial, known, tree, rounds, max_threshold,
                               initial_threshold)
-            if cost(settled[0]) < cost(rot):
+            settled_cost = cost(settled[0])
+            if settled_cost < current:
                 rot, inlier, noise, t = settled
+                current = settled_cost
                 left_out += 1
         if left_out == before:  # (else the runs are judged again on the new fit)
             break
