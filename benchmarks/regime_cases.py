@@ -278,6 +278,43 @@ def chain_trajectory(n: int, rng: np.random.Generator, step_deg: float = 4.0) ->
     return R
 
 
+def _closure_rules(num_nodes: int, odometry: list[tuple[int, int]]) -> tuple[
+        Callable[[int, int], bool], Callable[[int, int], None], set[tuple[int, int]]]:
+    """``(bad, add, used)``: the placement rules for loop closures (ends at least 20 apart,
+    no triangle, not within 1 id of an earlier closure at both ends) over the given
+    odometry pairs, the call that records a placed closure, and the closures placed."""
+    nbrs: list[set[int]] = [set() for _ in range(num_nodes)]
+    for a, b in odometry:
+        nbrs[a].add(b)
+        nbrs[b].add(a)
+    used: set[tuple[int, int]] = set()
+
+    def bad(a: int, b: int) -> bool:
+        if a == b or abs(a - b) < 20 or (a, b) in used or nbrs[a] & nbrs[b]:
+            return True
+        return any((a + da, b + db) in used for da in (-1, 0, 1) for db in (-1, 0, 1))
+
+    def add(a: int, b: int) -> None:
+        used.add((a, b))
+        nbrs[a].add(b)
+        nbrs[b].add(a)
+
+    return bad, add, used
+
+
+def _random_pairs(num_nodes: int, count: int, rng: np.random.Generator,
+                  bad: Callable[[int, int], bool], add: Callable[[int, int], None]
+                  ) -> list[tuple[int, int]]:
+    """``count`` random node pairs ``(a, b)``, ``a < b``, that ``bad`` allows (each added)."""
+    out: list[tuple[int, int]] = []
+    while len(out) < count:
+        a, b = sorted(int(x) for x in rng.integers(0, num_nodes, size=2))
+        if not bad(a, b):
+            add(a, b)
+            out.append((a, b))
+    return out
+
+
 def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float = 0.0,
                false_grouped: float = 0.0, odo_noise_deg: float = 1.5,
                loop_noise_deg: float = 2.0, seed: int = 0,
@@ -297,33 +334,9 @@ def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float 
     total = int(round(closures / max(1e-9, 1.0 - n_false)))
     n_rand = int(round(false_random * total))
     n_grp = total - closures - n_rand
-    nbrs: list[set[int]] = [set() for _ in range(num_nodes)]
-    for k in range(num_nodes - 1):
-        nbrs[k].add(k + 1)
-        nbrs[k + 1].add(k)
-    used: set[tuple[int, int]] = set()
-
-    def bad(a: int, b: int) -> bool:
-        if a == b or abs(a - b) < 20 or (a, b) in used or nbrs[a] & nbrs[b]:
-            return True
-        return any((a + da, b + db) in used for da in (-1, 0, 1) for db in (-1, 0, 1))
-
-    def add(a: int, b: int) -> None:
-        used.add((a, b))
-        nbrs[a].add(b)
-        nbrs[b].add(a)
-
-    def sample(count: int) -> list[tuple[int, int]]:
-        out: list[tuple[int, int]] = []
-        while len(out) < count:
-            a, b = sorted(int(x) for x in rng.integers(0, num_nodes, size=2))
-            if not bad(a, b):
-                add(a, b)
-                out.append((a, b))
-        return out
-
-    true_pairs = sample(closures)
-    rand_pairs = sample(n_rand)
+    bad, add, used = _closure_rules(num_nodes, [(k, k + 1) for k in range(num_nodes - 1)])
+    true_pairs = _random_pairs(num_nodes, closures, rng, bad, add)
+    rand_pairs = _random_pairs(num_nodes, n_rand, rng, bad, add)
     gi_l: list[int] = []
     gj_l: list[int] = []
     g_R: list[FloatArray] = []
@@ -354,6 +367,112 @@ def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float 
     noise = max(odo_noise_deg, loop_noise_deg)
     return RegimeCase(name, "chain", num_nodes, i, j, R, gt, None, inlier, noise, desc,
                       max(noise, 1.0))
+
+
+# ------------------------------------------------------- chains in pieces, revisited routes
+
+
+def _measured_case(name: str, gt: FloatArray, odometry: list[tuple[int, int]],
+                   true_pairs: list[tuple[int, int]], false_pairs: list[tuple[int, int]],
+                   odo_noise_deg: float, loop_noise_deg: float, rng: np.random.Generator,
+                   noise_model: str, desc: str) -> RegimeCase:
+    """A chain-family case: noisy odometry and true closures, random false closures."""
+    def arrays(pairs: list[tuple[int, int]]) -> tuple[IntArray, IntArray]:
+        ij = np.asarray(pairs, np.int64).reshape(-1, 2)
+        return ij[:, 0], ij[:, 1]
+
+    (oi, oj), (ti, tj), (fi, fj) = arrays(odometry), arrays(true_pairs), arrays(false_pairs)
+    R = np.concatenate([perturb(relative(gt, oi, oj), odo_noise_deg, rng, noise_model),
+                        perturb(relative(gt, ti, tj), loop_noise_deg, rng, noise_model),
+                        false_rotations(relative(gt, fi, fj), rng)])
+    inlier = np.r_[np.ones(oi.size + ti.size, bool), np.zeros(fi.size, bool)]
+    noise = max(odo_noise_deg, loop_noise_deg)
+    return RegimeCase(name, "chain", gt.shape[0], np.r_[oi, ti, fi], np.r_[oj, tj, fj], R,
+                      gt, None, inlier, noise, desc, max(noise, 1.0))
+
+
+def pieces_case(name: str, num_nodes: int, *, closures: int, sessions: int = 1,
+                dropped_odometry: float = 0.0, false_random: float = 0.0,
+                odo_noise_deg: float = 1.5, loop_noise_deg: float = 2.0, seed: int = 0,
+                noise_model: str = "folded") -> RegimeCase:
+    """An odometry chain in pieces that only loop closures join. ``sessions`` independent
+    trajectories of equal length, in turn (a multi-session map: no odometry between them);
+    within them each odometry edge is missing with probability ``dropped_odometry`` (a lost
+    track; but no gap within 4 ids of another or of a session's end), and each such gap is
+    bridged by up to two short closures across it (the front end relocalizing: ends 0-2
+    ids before the gap and 1-3 after it). Then ``closures`` random true closures and random
+    false ones, ``false_random`` of all the closures, placed by chain_case's rules."""
+    rng = rng_for(name, seed)
+    length = num_nodes // sessions
+    gt = np.concatenate([chain_trajectory(length, rng) for _ in range(sessions)])
+    n = gt.shape[0]
+    boundary = np.zeros(n - 1, bool)
+    boundary[length - 1::length] = True  # no odometry between sessions
+    drawn = rng.random(n - 1) < dropped_odometry
+    linked = ~boundary
+    for k in np.flatnonzero(drawn).tolist():  # gaps at least 5 ids from gaps and sessions'
+        near = slice(max(0, k - 4), k + 5)  # ends: each piece has 5 nodes, each bridge
+        if linked[near].all():  # stays in its session
+            linked[k] = False
+    odometry = [(k, k + 1) for k in np.flatnonzero(linked).tolist()]
+    bad, add, _ = _closure_rules(n, odometry)
+    true_pairs: list[tuple[int, int]] = []
+    for k in np.flatnonzero(~linked).tolist():
+        if (k + 1) % length == 0:
+            continue  # a session boundary: nothing bridges it
+        for _ in range(2):
+            a = max(0, k - int(rng.integers(0, 3)))
+            b = min(n - 1, k + 1 + int(rng.integers(1, 4)))
+            if (a, b) not in true_pairs:
+                true_pairs.append((a, b))
+                add(a, b)
+    true_pairs += _random_pairs(n, closures, rng, bad, add)
+    total = int(round(len(true_pairs) / max(1e-9, 1.0 - false_random)))
+    false_pairs = _random_pairs(n, total - len(true_pairs), rng, bad, add)
+    desc = (f"chain of {n} keyframes in {sessions} session(s), {n - 1 - len(odometry)} "
+            f"odometry gaps, {len(true_pairs)} true closures, {len(false_pairs)} false")
+    return _measured_case(name, gt, odometry, true_pairs, false_pairs, odo_noise_deg,
+                          loop_noise_deg, rng, noise_model, desc)
+
+
+def revisit_case(name: str, lap_nodes: int, laps: int, *, runs: int,
+                 false_random: float = 0.0, odo_noise_deg: float = 1.0,
+                 loop_noise_deg: float = 2.0, seed: int = 0,
+                 noise_model: str = "folded") -> RegimeCase:
+    """A route driven ``laps`` times: every lap's rotations are the first lap's, each turned
+    by a random 3 deg (RMS) rotation. The true closures come in ``runs`` runs, as a front
+    end finds them on a revisited stretch: 6-19 closures from every second keyframe of a
+    stretch of one lap to the same place (give or take 2 keyframes) on another. Random false
+    closures are ``false_random`` of all the closures."""
+    rng = rng_for(name, seed)
+    first = chain_trajectory(lap_nodes, rng)
+    turn = np.radians(3.0) / np.sqrt(3.0)
+    gt = np.concatenate([exp_map(rng.normal(0.0, turn, (lap_nodes, 3))) @ first
+                         for _ in range(laps)])
+    n = gt.shape[0]
+    odometry = [(k, k + 1) for k in range(n - 1)]
+    used: set[tuple[int, int]] = set()
+    true_pairs: list[tuple[int, int]] = []
+    made = 0
+    while made < runs:
+        la, lb = sorted(int(x) for x in rng.choice(laps, 2, replace=False))
+        t0, k = int(rng.integers(0, lap_nodes - 40)), int(rng.integers(6, 20))
+        shift = int(rng.integers(-2, 3))
+        run = [(la * lap_nodes + t0 + 2 * s,
+                lb * lap_nodes + min(lap_nodes - 1, max(0, t0 + 2 * s + shift)))
+               for s in range(k)]
+        if any(p in used for p in run):
+            continue
+        used.update(run)
+        true_pairs += run
+        made += 1
+    count = int(round(len(true_pairs) * false_random / max(1e-9, 1.0 - false_random)))
+    false_pairs = _random_pairs(
+        n, count, rng, lambda a, b: b - a < 20 or (a, b) in used, lambda a, b: used.add((a, b)))
+    desc = (f"route of {lap_nodes} keyframes driven {laps} times, {runs} runs of "
+            f"{len(true_pairs)} true closures, {len(false_pairs)} false")
+    return _measured_case(name, gt, odometry, true_pairs, false_pairs, odo_noise_deg,
+                          loop_noise_deg, rng, noise_model, desc)
 
 
 # ----------------------------------------------------------------------- SfM / dense

@@ -1,8 +1,11 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Thirteen cases outside the record suite of :mod:`benchmarks.regimes`, drawn with the same
-generators at parameters the suite does not use (noise between its levels, denser or
-grouped false closures, a sparse random view graph, a very heavy outlier share). They look
+Eighteen cases outside the record suite of :mod:`benchmarks.regimes`: thirteen drawn with
+the suite's generators at parameters the suite does not use (noise between its levels,
+denser or grouped false closures, a sparse random view graph, a very heavy outlier share),
+and five graphs of kinds the suite has none of: chains in pieces that only loop closures
+join (two or three sessions; a chain with dropped odometry) and a route driven three times,
+whose true closures come in runs. They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
 ``paper`` profile (ours, the oracle, every installed peer) as the suite does
@@ -28,7 +31,15 @@ from typing import Any
 
 from benchmarks import peers
 from benchmarks.datasets import shared_dir_or_say
-from benchmarks.regime_cases import NOISE_MODELS, RegimeCase, chain_case, dense_case, slam_case
+from benchmarks.regime_cases import (
+    NOISE_MODELS,
+    RegimeCase,
+    chain_case,
+    dense_case,
+    pieces_case,
+    revisit_case,
+    slam_case,
+)
 from benchmarks.regimes import (
     OURS_NOFILTER,
     OURS_PAPER,
@@ -50,6 +61,12 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
     def dense(name: str, nodes: int, degree: float, **extra: Any) -> Callable[[], RegimeCase]:
         return lambda: dense_case(name, nodes, degree, seed=seed, noise_model=model, **extra)
 
+    def pieces(name: str, nodes: int, **extra: Any) -> Callable[[], RegimeCase]:
+        return lambda: pieces_case(name, nodes, seed=seed, noise_model=model, **extra)
+
+    def revisit(name: str, lap: int, laps: int, **extra: Any) -> Callable[[], RegimeCase]:
+        return lambda: revisit_case(name, lap, laps, seed=seed, noise_model=model, **extra)
+
     return [
         slam("stress/torus3D/noise5", "torus3D", noise_deg=5.0),
         slam("stress/torus3D/noise10+rand5", "torus3D", noise_deg=10.0, random_false=0.05),
@@ -66,6 +83,14 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
         chain("stress/chain/2000/grouped40", 2000, closures=60, false_grouped=0.40),
         chain("stress/chain/300/clean-noise5", 300, closures=20, odo_noise_deg=5.0,
               loop_noise_deg=5.0),
+        pieces("stress/sessions/2x600-rand25", 1200, sessions=2, closures=40,
+               false_random=0.25),
+        pieces("stress/sessions/3x400-rand30", 1200, sessions=3, closures=45,
+               false_random=0.30),
+        pieces("stress/chain/1000/gaps3-rand25", 1000, dropped_odometry=0.03, closures=40,
+               false_random=0.25),
+        revisit("stress/revisit/3x400-clean", 400, 3, runs=12),
+        revisit("stress/revisit/3x400-rand20", 400, 3, runs=12, false_random=0.20),
         dense("stress/dense200-deg10/out30-noise3", 200, 10, outliers=0.3, noise_deg=3.0),
         dense("stress/dense400/out30-noise5", 400, 40, outliers=0.3, noise_deg=5.0),
         dense("stress/dense100/out70", 100, 50, outliers=0.7),

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from benchmarks import regime_cases as rc
-from rotavg_ros.core.robust.closure_consistency import consistent_closures, odometry_rotations
+from rotavg_ros.core.robust.closure_consistency import consistent_closures
+from rotavg_ros.core.robust.odometry_start import odometry_rotations
 
 
 def test_odometry_rotations_compose_the_chain_and_split_at_gaps() -> None:

@@ -29,7 +29,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from rotavg_ros.core.filter.edge_filter import tree_rotations
+from rotavg_ros.core.robust.odometry_start import odometry_rotations
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 CHI2_3_999 = 16.27
@@ -42,18 +42,6 @@ its time and memory are quadratic in them (4 bytes per pair: 144 MB at this limi
 for the 4,600 closures of parking-garage on the project's 2-core machine)."""
 
 _ROWS = 1024  # pairs are tested in blocks of this many rows
-
-
-def odometry_rotations(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
-                       odometry: BoolArray) -> tuple[FloatArray, IntArray]:
-    """``(Q, piece)``: world-to-node rotations composed along the odometry chain
-    (:func:`~rotavg_ros.core.filter.edge_filter.tree_rotations` over the odometry edges; the
-    first node of each unbroken piece is identity), and the piece of each node (nodes ``k``,
-    ``k + 1`` share a piece when the odometry joins them)."""
-    linked = np.zeros(num_nodes, bool)  # linked[k]: k -- k+1 is odometry
-    linked[np.minimum(i[odometry], j[odometry])] = True
-    piece = np.concatenate([[0], np.cumsum(~linked[:-1])]).astype(np.int64)
-    return tree_rotations(i, j, R, np.flatnonzero(odometry), num_nodes), piece
 
 
 def consistent_closures(

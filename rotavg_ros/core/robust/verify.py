@@ -9,8 +9,9 @@ takes the solution, not the tree, as the reference, and lets the data set the th
 1. **Robust re-solves.** GNC-TLS (:mod:`.gnc`) over every edge, at ``initial_threshold``,
    from each start point: the DMF solution, the odometry chain's rotations (a spanning tree
    that takes consecutive node indices first; only where there is odometry or no other
-   start) and any the caller adds (the solver adds the filter's spanning tree), then least
-   squares on its inliers. The re-solve whose residuals
+   start; where the odometry is in pieces, also its pieces joined by the closures that
+   agree, :mod:`.odometry_start`) and any the caller adds (the solver adds the filter's
+   spanning tree), then least squares on its inliers. The re-solve whose residuals
    are most likely under an inlier/outlier mixture fitted to them is kept.
 2. **Noise.** Every residual is standardized by its own predicted spread (leverage for edges
    in the fit, prediction variance for the others; :func:`standardized_residuals`); the
@@ -21,11 +22,12 @@ takes the solution, not the tree, as the reference, and lets the data set the th
 4. **GNC at the data's threshold.** When step 3 found outliers and ``GNC_SIGMAS`` noise
    scales are below the initial threshold: GNC-TLS again at that threshold from step 3's
    solution and from the odometry chain, the odometry edges (``known_inlier``) trusted from
-   here on (known inliers, uncapped in the choice cost); where those two disagree, also from
+   here on (known inliers, uncapped in the choice cost); where those disagree, also from
    the best of the starts on pairwise-consistent closure sets (:func:`consistent_starts`,
-   :mod:`.closure_consistency`); step 3 on the lowest-cost result. Then runs of loop
-   closures that pull the fit all one way (:mod:`.closure_runs`) are left out where that
-   lowers the choice cost (:func:`_leave_runs_out`).
+   :mod:`.closure_consistency`); step 3 on the result of the lowest truncated squares
+   (:func:`truncated_squares`, the GNC's objective). Then runs of loop closures that pull
+   the fit all one way (:mod:`.closure_runs`) are left out where that lowers the choice
+   cost (:func:`_leave_runs_out`).
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
    (:mod:`.relocalize`); if that lowers the choice cost, step 3 runs again from there. The
    DMF solution's far-off nodes move the same way. Last, on a sparse graph, least squares
@@ -77,6 +79,7 @@ from rotavg_ros.core.robust.noise import (
     log_likelihood,
     looks_gaussian,
 )
+from rotavg_ros.core.robust.odometry_start import odometry_start
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
@@ -200,6 +203,20 @@ def truncated_l1(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: Fl
     r = residual_angles(rot, i, j, R) * np.sqrt(w)
     capped = np.minimum(r, c)
     return float(np.sum(capped if trusted is None else np.where(trusted, r, capped)))
+
+
+def truncated_squares(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
+                      w: FloatArray, c: float, trusted: BoolArray | None = None) -> float:
+    """``sum_e min(w_e r_e^2, c^2)``, ``trusted`` edges uncapped: the truncated
+    least-squares objective that GNC-TLS minimizes (at threshold ``c`` for a unit-weight
+    edge). The re-solve compares its least-squares fits of different inlier sets by it. Its
+    truncated L1 counterpart (:func:`truncated_l1`) favours cutting long loops: a kept
+    closure adds about 3 sigma^2 to a fit's squared residuals, however long the loop it
+    closes, but adds the loop's whole misclosure, which grows with the loop's length, to the
+    sum of the residual angles. A chain left in pieces fits its odometry exactly."""
+    r2 = residual_angles(rot, i, j, R) ** 2 * w
+    capped = np.minimum(r2, c * c)
+    return float(np.sum(capped if trusted is None else np.where(trusted, r2, capped)))
 
 
 def standardized_residuals(
@@ -428,12 +445,18 @@ def robust_resolve(
         return truncated_l1(rotations, i, j, R, w, cap, known)
 
     tree = chain_tree(num_nodes, i, j, w)
-    chain_rot = tree_rotations(i, j, R, np.flatnonzero(tree), num_nodes)
     # The chain start is the odometry's rotations; without odometry it is one more
     # arbitrary spanning tree, and the caller's tree (the filter's) is start enough. (On the
     # 9 SfM regime cases the chain start never won; skipping it saves a third of the
-    # GNC time there.)
+    # GNC time there.) Where the odometry is in pieces, the chain tree joins them by
+    # whichever closure it meets first, and the pieces joined by the closures that agree
+    # (:func:`~.odometry_start.odometry_start`) are one more start.
+    chain_rot = tree_rotations(i, j, R, np.flatnonzero(tree), num_nodes)
     chain = {"chain": chain_rot} if odometry.any() or not starts else {}
+    if odometry.any():
+        joined = odometry_start(num_nodes, i, j, R, w, odometry, initial_threshold)
+        if not np.allclose(joined, chain_rot, atol=1e-9):
+            chain["odometry"] = joined
     dmf = {} if dmf_rotations is None else {"dmf": dmf_rotations}
     solutions = robust_solutions(i, j, R, w, {**dmf, **chain, **starts}, initial_threshold)
     start = most_likely(solutions, i, j, R, w, max_threshold)
@@ -457,26 +480,31 @@ def robust_resolve(
         inlier |= known
         # GNC at a tight threshold depends on its start: from step 3's solution and from
         # the odometry chain (which no false closure bends), the lower cost wins; its
-        # inliers then settle. Where those two disagree, the result depends on the start,
-        # and the best start from pairwise-consistent closure sets joins them.
+        # inliers then settle. Where those disagree, the result depends on the start, and
+        # the best start from pairwise-consistent closure sets joins them. The fits compare
+        # by the GNC's own objective, their truncated squares (:func:`truncated_squares`),
+        # not by the choice's L1 cost.
+        tls = functools.partial(truncated_squares, i=i, j=j, R=R, w=w,
+                                c=GNC_SIGMAS * noise.sigma, trusted=known)
         candidates: list[tuple[float, FloatArray, BoolArray]] = []
 
         def tight_from(begin: FloatArray, mu_min: float) -> None:
             tight_rot, tight_inlier = robust_from(begin, i, j, R, w, threshold, known, mu_min)
             if not any(np.array_equal(tight_inlier, c[2]) for c in candidates):
-                candidates.append((cost(tight_rot), tight_rot, tight_inlier))
+                candidates.append((tls(tight_rot), tight_rot, tight_inlier))
 
         tight_from(rot, TIGHT_START_MU)
-        tight_from(chain_rot, 0.0)
+        for chain_start in chain.values():
+            tight_from(chain_start, 0.0)
         if len(candidates) > 1:
             consistent = consistent_starts(num_nodes, i, j, R, w, odometry, noise.sigma)
             if consistent:  # (the GNC keeps the order of the starts' costs: from the best)
-                tight_from(min(consistent, key=cost), TIGHT_START_MU)
+                tight_from(min(consistent, key=tls), TIGHT_START_MU)
         best = min(candidates, key=lambda c: c[0])
         if not np.array_equal(best[2], inlier):  # else: the same fit as step 3's
             tight = _settle(best[1], i, j, R, w, best[2], known, tree, rounds,
                             max_threshold, initial_threshold)
-            if cost(tight[0]) < cost(rot):
+            if tls(tight[0]) < tls(rot):
                 rot, inlier, noise, t = tight
         # Runs of consistent false closures the pairwise test could not reach (the odometry
         # between them and the true closures is long) pull the fit all one way.
