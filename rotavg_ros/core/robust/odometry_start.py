@@ -77,9 +77,22 @@ def _join_pieces(p: IntArray, q: IntArray, D: FloatArray, w: FloatArray, num_pie
     and the closures between two groups support each other whichever of their pieces they
     join. Above ``MAX_MERGED`` pieces the pairs of pieces are joined in one round instead
     (a maximum spanning tree of their supports)."""
+    if num_pieces > MAX_MERGED:  # one round: a maximum spanning tree of the pairs
+        pair = p * num_pieces + q  # (p < q: pieces are numbered along the node order)
+        support = _support(D.reshape(-1, 9), pair, w, tolerance)
+        order = np.lexsort((-support, pair))
+        first = order[np.r_[True, pair[order][1:] != pair[order][:-1]]]
+        tree = minimum_spanning_tree(coo_matrix(
+            (1.0 + support.max() - support[first], (p[first], q[first])),
+            shape=(num_pieces, num_pieces))).tocoo()
+        keys = (np.minimum(tree.row, tree.col).astype(np.int64) * num_pieces
+                + np.maximum(tree.row, tree.col))
+        chosen = first[np.isin(pair[first], keys)]
+        return tree_rotations(p[chosen], q[chosen], D[chosen], np.arange(chosen.size),
+                              num_pieces)
     L = np.tile(np.eye(3), (num_pieces, 1, 1))
     group = np.arange(num_pieces)
-    for _ in range(num_pieces - 1 if num_pieces <= MAX_MERGED else 1):
+    for _ in range(num_pieces - 1):
         g, h = group[p], group[q]
         cross = np.flatnonzero(g != h)
         if cross.size == 0:
@@ -89,19 +102,7 @@ def _join_pieces(p: IntArray, q: IntArray, D: FloatArray, w: FloatArray, num_pie
         flip = g > h
         J[flip] = J[flip].transpose(0, 2, 1)
         lo, hi = np.where(flip, h, g), np.where(flip, g, h)
-        pair = lo * num_pieces + hi
-        support = _support(J.reshape(-1, 9), pair, w[cross], tolerance)
-        if num_pieces > MAX_MERGED:  # one round: a maximum spanning tree of the pairs
-            order = np.lexsort((-support, pair))
-            first = order[np.r_[True, pair[order][1:] != pair[order][:-1]]]
-            tree = minimum_spanning_tree(coo_matrix(
-                (1.0 + support.max() - support[first], (lo[first], hi[first])),
-                shape=(num_pieces, num_pieces))).tocoo()
-            keys = (np.minimum(tree.row, tree.col).astype(np.int64) * num_pieces
-                    + np.maximum(tree.row, tree.col))
-            chosen = first[np.isin(pair[first], keys)]
-            return tree_rotations(lo[chosen], hi[chosen], J[chosen],
-                                  np.arange(chosen.size), num_pieces)
+        support = _support(J.reshape(-1, 9), lo * num_pieces + hi, w[cross], tolerance)
         best = int(np.argmax(support))
         # K_hi = J^T K_lo: the pieces of group hi join group lo.
         moved = group == hi[best]
