@@ -200,9 +200,7 @@ def truncated_l1(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: Fl
     """``sum_e min(sqrt(w_e) r_e, c)``: every edge counts (its residual in units of its own
     noise), none by more than ``c`` (radians of a unit-weight edge), except ``trusted``
     edges (odometry), which count in full."""
-    r = residual_angles(rot, i, j, R) * np.sqrt(w)
-    capped = np.minimum(r, c)
-    return float(np.sum(capped if trusted is None else np.where(trusted, r, capped)))
+    return _capped_sum(residual_angles(rot, i, j, R) * np.sqrt(w), c, trusted)
 
 
 def truncated_squares(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
@@ -214,9 +212,13 @@ def truncated_squares(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
     closure adds about 3 sigma^2 to a fit's squared residuals, however long the loop it
     closes, but adds the loop's whole misclosure, which grows with the loop's length, to the
     sum of the residual angles. A chain left in pieces fits its odometry exactly."""
-    r2 = residual_angles(rot, i, j, R) ** 2 * w
-    capped = np.minimum(r2, c * c)
-    return float(np.sum(capped if trusted is None else np.where(trusted, r2, capped)))
+    return _capped_sum(residual_angles(rot, i, j, R) ** 2 * w, c * c, trusted)
+
+
+def _capped_sum(values: FloatArray, cap: float, trusted: BoolArray | None) -> float:
+    """``sum min(values, cap)``, the ``trusted`` entries uncapped."""
+    capped = np.minimum(values, cap)
+    return float(np.sum(capped if trusted is None else np.where(trusted, values, capped)))
 
 
 def standardized_residuals(
