@@ -112,7 +112,9 @@ def main() -> int:
     p.add_argument("--noise-model", choices=NOISE_MODELS, default="folded")
     p.add_argument("--timeout", type=float, default=300.0, help="per case and method, s")
     p.add_argument("--json", help="write the raw results (no per-node errors) here")
+    p.add_argument("--cases", help="comma-separated substrings of the variants' names")
     args = p.parse_args()
+    wanted = args.cases.split(",") if args.cases else [""]
     shared = shared_dir_or_say("regime_stress")
     if shared is None:
         return 0
@@ -120,6 +122,8 @@ def main() -> int:
     results: list[Result] = []
     for build in stress_cases(shared, args.seed, args.noise_model):
         case = build()
+        if not any(part in case.name for part in wanted):
+            continue
         rows = [run_method(case, method, args.timeout)
                 for method, runnable in methods_for(case, available)
                 if runnable and method not in (OURS_PAPER, OURS_NOFILTER)]

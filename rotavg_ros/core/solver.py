@@ -34,7 +34,7 @@ from rotavg_ros.core.dmf.sparse import shows_outliers
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
-from rotavg_ros.core.robust.noise import looks_gaussian
+from rotavg_ros.core.robust.noise import looks_gaussian, redundancy
 from rotavg_ros.core.robust.verify import (
     RobustSolve,
     choose,
@@ -224,14 +224,15 @@ class RotationAverager:
         robust: RobustSolve | None = None  # the verification's re-solve, run first
         inlier_fit: ComponentSolution | None = None
         resolve_only = False  # robust first, and no DMF fit: the re-solve is the answer
+        resolve_why = ""  # (why: said in the progress)
         chordal: FloatArray | None = None  # sparse mode's start, when computed here
         if (sparse and initial is None and opt.verify.enabled and opt.verify.robust_first
                 and opt.dense.explicit_constraint and i.size >= 3):
             chordal = chordal_rotations(n, fi, fj, fR, fw)
             robust = self._robust_first(n, (i, j, R, w), kept, chordal, starts, odometry)
             if robust is not None and connects_all(n, i, j, robust.inlier):
-                resolve_only = (opt.verify.least_squares_where_gaussian
-                                and looks_gaussian(robust.t, robust.inlier))
+                resolve_why = self._least_squares_answers(n, robust)
+                resolve_only = bool(resolve_why)
                 if not resolve_only:
                     from_resolve = self._refit_from_resolve(robust.t, robust.inlier)
                     inlier_fit = self._fit_inliers(
@@ -320,7 +321,7 @@ class RotationAverager:
         trusted = int(out.known.sum())
         self._say(f"verification: kept the {out.chosen} solution"
                   f"{' (DMF refit)' if refitted else ''}"
-                  f"{' (no DMF fit: its residuals look Gaussian)' if resolve_only else ''}"
+                  f"{f' (no DMF fit: {resolve_why})' if resolve_only else ''}"
                   f"{' (least squares restarted from the relaxation)' if out.restarted else ''}"
                   ", noise "
                   f"{out.noise.sigma_deg:.2f} deg per axis, {int((~inlier).sum())} "
@@ -390,6 +391,25 @@ class RotationAverager:
         self._say(f"robust first: the chordal solution shows outliers; the re-solve leaves "
                   f"{int((~robust.inlier).sum())} edges outside")
         return robust
+
+    def _least_squares_answers(self, n: int, robust: RobustSolve) -> str:
+        """Robust first: why the re-solve (least squares on its inliers) is the answer and no
+        DMF is fitted on them (``VerifyOptions.least_squares_where_gaussian``), or "" where
+        the DMF fit runs. Least squares is the better estimator where the re-solve's
+        standardized inlier residuals look Gaussian (:func:`looks_gaussian`), and where the
+        inliers' redundancy (:func:`redundancy`) is below
+        ``VerifyOptions.least_squares_below_redundancy``: an L1 fit gains on noise peaked at
+        zero only where most edges are redundant, and on a chain it puts each loop's
+        misclosure on a few edges instead of spreading it along the loop."""
+        opt = self.options.verify
+        if not opt.least_squares_where_gaussian:
+            return ""
+        if looks_gaussian(robust.t, robust.inlier):
+            return "its residuals look Gaussian"
+        spare = redundancy(n, robust.inlier)
+        if spare < opt.least_squares_below_redundancy:
+            return f"redundancy {spare:.2f}"
+        return ""
 
     def _refit_from_resolve(self, t: FloatArray, inlier: BoolArray) -> bool:
         """Sparse mode: whether the DMF fits on the re-solve's inliers skip the filter and

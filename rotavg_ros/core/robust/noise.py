@@ -143,3 +143,13 @@ def looks_gaussian(t: FloatArray, inlier: BoolArray) -> bool:
     least squares is then the better estimator on those edges."""
     shape = residual_shape(t, inlier)
     return math.isfinite(shape) and shape >= GAUSSIAN_SHAPE
+
+
+def redundancy(num_nodes: int, inlier: BoolArray) -> float:
+    """Mean redundancy of a connected graph's ``inlier`` edges, ``(m - n + 1) / m``: one
+    minus the mean leverage of its least-squares fit, at any weights (the hat matrix's trace
+    is the rank, 3 (n - 1), over 3 m residuals). Near 0 on an odometry chain with sparse
+    loop closures, where almost every edge is needed to connect the nodes; near 1 on a dense
+    view graph."""
+    m = int(np.count_nonzero(inlier))
+    return (m - num_nodes + 1) / m if m else 0.0
