@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -21,7 +22,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     residual_angles,
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
-from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, fit_noise, residual_shape
+from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, fit_noise, redundancy, residual_shape
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.robust.verify import (
     chain_tree,
@@ -304,31 +305,33 @@ def test_default_profile_solves_a_chain_with_false_closures_like_the_oracle() ->
     oracle = average_rotations(n, i[~bad], j[~bad], R[~bad], w[~bad],
                                SolverOptions.for_profile("paper"))
     paper = average_rotations(n, i, j, R, w, SolverOptions.for_profile("paper"))
-    # The chordal solution shows the false closures: the robust re-solve runs first and
-    # the DMF fitted on its inliers is kept.
-    assert default.verification == "dmf"
+    # The chordal solution shows the false closures: the robust re-solve runs first, and
+    # on a chain (redundancy below ``least_squares_below_redundancy``) it is the answer.
+    assert default.verification == "robust" and default.depth == 0
     assert np.array_equal(~default.kept, bad)
     assert _mean_error(default.rotations, truth) < 1.1 * _mean_error(oracle.rotations, truth)
     assert _mean_error(paper.rotations, truth) > 5 * _mean_error(default.rotations, truth)
 
 
 def _default_with_and_without(
-    i: np.ndarray, j: np.ndarray, R: np.ndarray, n: int, option: str,
+    i: np.ndarray, j: np.ndarray, R: np.ndarray, n: int, option: str, **flat: Any,
 ) -> tuple[list[str], ArraySolution, ArraySolution]:
-    """Default-profile solves of a graph (unit weights): ``(its progress lines, the solve,
-    the solve with ``option`` off)``."""
+    """Default-profile solves of a graph (unit weights), both with the options ``flat``:
+    ``(its progress lines, the solve, the solve with ``option`` off)``."""
     w = np.ones(i.size)
     said: list[str] = []
     on = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
-        "default", progress=said.append))
+        "default", progress=said.append, **flat))
     off = average_rotations(n, i, j, R, w, SolverOptions.for_profile(
-        "default", **{option: False}))
+        "default", **{option: False, **flat}))
     return said, on, off
 
 
 def test_sparse_mode_runs_the_robust_resolve_first_where_the_chordal_start_shows_outliers() -> None:
     i, j, R, truth, bad = _chain(200, 24, 1 / 3, seed=6)
-    said, first, after = _default_with_and_without(i, j, R, 200, "robust_first")
+    # (redundancy 0.07: by default the re-solve would be the answer, with no DMF fit)
+    said, first, after = _default_with_and_without(i, j, R, 200, "robust_first",
+                                                   least_squares_below_redundancy=0.0)
     assert any(line.startswith("robust first") for line in said)
     # The same outliers found; the DMF fitted on the inliers alone needs far fewer steps
     # than the fit on every edge from the chordal start the false closures bent.
@@ -342,6 +345,20 @@ def test_sparse_mode_runs_the_robust_resolve_first_where_the_chordal_start_shows
                       SolverOptions.for_profile("default", progress=said.append))
     assert not any(line.startswith("robust first") for line in said)
     assert any(line.startswith("verification") for line in said)
+
+
+def test_redundancy_is_one_minus_the_mean_leverage() -> None:
+    # A least-squares fit's leverages sum to its rank, 3 (n - 1) over 3 m residuals, at
+    # any weights: on a chain every edge has leverage 1, on a cycle they average (n - 1) / n.
+    n = 12
+    i, j = np.arange(n), (np.arange(n) + 1) % n
+    rng = np.random.default_rng(0)
+    rot = random_rotations(n, rng)
+    w = rng.uniform(0.5, 2.0, n)
+    h = w * gauss_newton.prediction_variance(rot, i, j, w, exact=lambda q: np.ones(n, bool))
+    assert redundancy(n, np.ones(n, bool)) == pytest.approx(1.0 - float(np.mean(h)))
+    assert redundancy(n, np.arange(n) < n - 1) == 0.0  # the chain
+    assert redundancy(n, np.zeros(n, bool)) == 0.0
 
 
 def test_residual_shape_tells_gaussian_residuals_from_peaked_ones() -> None:
@@ -471,7 +488,7 @@ def test_no_dmf_fit_on_the_re_solves_inliers_where_its_residuals_look_gaussian()
     said, skip, fit = _default_with_and_without(i, j, R, 400,
                                                 "least_squares_where_gaussian")
     assert any(line.startswith("robust first") for line in said)
-    assert any("no DMF fit" in line for line in said)
+    assert any("no DMF fit: its residuals look Gaussian" in line for line in said)
     assert skip.depth == 0 and skip.iterations_by_depth == {}
     assert fit.depth == 2 and fit.iterations_by_depth[2] > 0
     assert skip.verification == fit.verification == "robust"
