@@ -266,13 +266,16 @@ class RotationAverager:
                                      untested=untested, pruned_depths=pruned)
         max_threshold = math.radians(opt.verify.max_threshold_deg)
         try:
+            chain_like = (opt.verify.least_squares_below_redundancy
+                          if opt.verify.least_squares_where_gaussian else 0.0)
             if robust is not None:
                 out = choose(n, i, j, R, w, robust, None if resolve_only else rot, dmf_kept,
-                             max_threshold)
+                             max_threshold, least_squares_below=chain_like)
             else:
                 out = verify(n, i, j, R, w, rot, kept, starts, known_inlier=odometry,
                              initial_threshold=math.radians(opt.verify.initial_threshold_deg),
-                             max_threshold=max_threshold, rounds=opt.verify.rounds)
+                             max_threshold=max_threshold, rounds=opt.verify.rounds,
+                             least_squares_below=chain_like)
         except (np.linalg.LinAlgError, FloatingPointError, RuntimeError) as exc:
             self._say(f"verification failed ({type(exc).__name__}: {exc}); keeping the DMF "
                       "solution")
@@ -284,8 +287,10 @@ class RotationAverager:
         final = out.rotations
         inlier = out.classified
         if out.chosen == "robust":
-            if inlier_fit is None and not resolve_only:  # (else the DMF on these inliers
-                # has just lost, or the re-solve's residuals said least squares)
+            if (inlier_fit is None and not resolve_only
+                    and not redundancy(n, out.inlier) < chain_like):
+                # (else the DMF on these inliers has just lost, or the re-solve's residuals
+                # or its inliers' redundancy said least squares)
                 from_resolve = sparse and self._refit_from_resolve(out.resolve_t, out.inlier)
                 # A cold, filtered refit on every edge repeats the first fit exactly.
                 repeat = initial is None and not from_resolve and bool(np.all(out.inlier))

@@ -78,6 +78,7 @@ from rotavg_ros.core.robust.noise import (
     is_inlier,
     log_likelihood,
     looks_gaussian,
+    redundancy,
 )
 from rotavg_ros.core.robust.odometry_start import odometry_start
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
@@ -413,10 +414,11 @@ def verify(
     max_threshold: float = math.radians(90.0),
     rounds: int = 2,
     margin: float = 0.02,
+    least_squares_below: float = 0.0,
 ) -> VerifyOutcome:
     """Robust re-solve of every edge (:func:`robust_resolve`, the DMF solution one of its
-    starts) and the choice against the DMF solution (:func:`choose`); see the module
-    docstring.
+    starts) and the choice against the DMF solution (:func:`choose`, with ``margin`` and
+    ``least_squares_below``); see the module docstring.
 
     ``starts`` are extra start points (name -> rotations) besides the DMF solution and the
     chain tree's rotations.
@@ -424,7 +426,7 @@ def verify(
     robust = robust_resolve(num_nodes, i, j, R, w, starts, known_inlier, initial_threshold,
                             max_threshold, rounds, dmf_rotations)
     return choose(num_nodes, i, j, R, w, robust, dmf_rotations, dmf_kept, max_threshold,
-                  margin)
+                  margin, least_squares_below)
 
 
 @_linear_solves_set_for_the_graph
@@ -633,6 +635,7 @@ def choose(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     robust: RobustSolve, dmf_rotations: FloatArray | None, dmf_kept: BoolArray,
     max_threshold: float = math.radians(90.0), margin: float = 0.02,
+    least_squares_below: float = 0.0,
 ) -> VerifyOutcome:
     """Step 6 of the module docstring: the DMF solution (its far-off nodes first moved, if
     that lowers its cost) or the robust re-solve, by the truncated L1 cost over every
@@ -640,7 +643,11 @@ def choose(
     Where the re-solve's standardized inlier residuals look Gaussian
     (:func:`~.noise.looks_gaussian`) the margin goes the other way: least squares is the
     better estimator there, and an L1 cost favours the L1 fit, so the re-solve stands
-    unless the DMF solution is ``margin`` better. ``dmf_rotations`` None: no DMF solution
+    unless the DMF solution is ``margin`` better. Where the re-solve's inliers have a
+    redundancy (:func:`~.noise.redundancy`) below ``least_squares_below`` (an odometry chain
+    with sparse loop closures, where an L1 fit has no redundant edges to gain from) the two
+    are compared by their truncated squares (:func:`truncated_squares`, same cap, odometry
+    uncapped), and the re-solve stands unless the DMF solution's is ``margin`` lower. ``dmf_rotations`` None: no DMF solution
     (the solver fitted none), the re-solve stands."""
     known, cap, tree = robust.known, robust.cap, robust.tree
 
@@ -668,7 +675,14 @@ def choose(
     # A DMF solution that needed nodes moved has no claim to the margin: it did not explain
     # the data by itself.
     costs["dmf"] = cost(dmf_rotations)
-    if looks_gaussian(robust.t, robust.inlier):
+    if redundancy(num_nodes, robust.inlier) < least_squares_below:
+        # Little redundancy: the L1 fit zeroes most residuals, so its L1 cost is far lower
+        # (20% on a route driven three times) for a less accurate solution. Judged by the
+        # truncated squares instead, it must explain the data better to stand.
+        for name, rotations in (("robust", robust.rotations), ("dmf", dmf_rotations)):
+            costs[f"{name}_squares"] = truncated_squares(rotations, i, j, R, w, cap, known)
+        dmf_stands = costs["dmf_squares"] < (1.0 - margin) * costs["robust_squares"]
+    elif looks_gaussian(robust.t, robust.inlier):
         dmf_stands = costs["dmf"] < (1.0 - margin) * costs["robust"]
     else:
         dmf_stands = not costs["robust"] < (1.0 - (0.0 if dmf_moves else margin)) * costs["dmf"]
