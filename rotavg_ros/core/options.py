@@ -250,7 +250,10 @@ class VerifyOptions:
     median was 0.3-24% above the re-solve's on 5 of 6 draws (clean, and with 20% false
     closures) and 10% below on one, and a geodesic L1 fit of the true edges was 12-62% above
     least squares' on 3 of 3. With 24 runs (0.19-0.21) the DMF was the better on 2 of 3
-    draws; on random-closure chains the two agree. 0 turns this off."""
+    draws; on random-closure chains the two agree. Where the DMF is fitted first (the
+    node's warm solves, graphs whose chordal solution shows no outlier) the choice compares
+    it with the re-solve by their truncated squares there, not by the L1 cost, and no DMF
+    refit replaces a re-solve that stands. 0 turns this off."""
     refit_readmitted: bool = field(default=True, metadata=_flat("refit_readmitted"))
     """Dense mode: where the DMF solution is kept but most of the edges the verification
     calls inliers were not in its fit (the filter removed them and the verification

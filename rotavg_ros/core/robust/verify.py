@@ -647,8 +647,8 @@ def choose(
     redundancy (:func:`~.noise.redundancy`) below ``least_squares_below`` (an odometry chain
     with sparse loop closures, where an L1 fit has no redundant edges to gain from) the two
     are compared by their truncated squares (:func:`truncated_squares`, same cap, odometry
-    uncapped), and the re-solve stands unless the DMF solution's is ``margin`` lower. ``dmf_rotations`` None: no DMF solution
-    (the solver fitted none), the re-solve stands."""
+    uncapped), and the re-solve stands unless the DMF solution's is ``margin`` lower.
+    ``dmf_rotations`` None: no DMF solution (the solver fitted none), the re-solve stands."""
     known, cap, tree = robust.known, robust.cap, robust.tree
 
     def cost(rotations: FloatArray) -> float:
