@@ -266,8 +266,7 @@ class RotationAverager:
                                      untested=untested, pruned_depths=pruned)
         max_threshold = math.radians(opt.verify.max_threshold_deg)
         try:
-            chain_like = (opt.verify.least_squares_below_redundancy
-                          if opt.verify.least_squares_where_gaussian else 0.0)
+            chain_like = self._least_squares_below()
             if robust is not None:
                 out = choose(n, i, j, R, w, robust, None if resolve_only else rot, dmf_kept,
                              max_threshold, least_squares_below=chain_like)
@@ -288,7 +287,7 @@ class RotationAverager:
         inlier = out.classified
         if out.chosen == "robust":
             if (inlier_fit is None and not resolve_only
-                    and not redundancy(n, out.inlier) < chain_like):
+                    and redundancy(n, out.inlier) >= chain_like):
                 # (else the DMF on these inliers has just lost, or the re-solve's residuals
                 # or its inliers' redundancy said least squares)
                 from_resolve = sparse and self._refit_from_resolve(out.resolve_t, out.inlier)
@@ -406,15 +405,17 @@ class RotationAverager:
         ``VerifyOptions.least_squares_below_redundancy``: an L1 fit gains on noise peaked at
         zero only where most edges are redundant, and on a chain it puts each loop's
         misclosure on a few edges instead of spreading it along the loop."""
-        opt = self.options.verify
-        if not opt.least_squares_where_gaussian:
+        if not self.options.verify.least_squares_where_gaussian:
             return ""
         if looks_gaussian(robust.t, robust.inlier):
             return "its residuals look Gaussian"
         spare = redundancy(n, robust.inlier)
-        if spare < opt.least_squares_below_redundancy:
-            return f"redundancy {spare:.2f}"
-        return ""
+        return f"redundancy {spare:.2f}" if spare < self._least_squares_below() else ""
+
+    def _least_squares_below(self) -> float:
+        """The redundancy below which least squares is the answer (0: never, by it)."""
+        opt = self.options.verify
+        return opt.least_squares_below_redundancy if opt.least_squares_where_gaussian else 0.0
 
     def _refit_from_resolve(self, t: FloatArray, inlier: BoolArray) -> bool:
         """Sparse mode: whether the DMF fits on the re-solve's inliers skip the filter and
