@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from benchmarks import regime_cases as rc
-from rotavg_ros.core.robust.closure_consistency import consistent_closures
+from rotavg_ros.core.robust.closure_consistency import _mutually_consistent, consistent_closures
 from rotavg_ros.core.robust.odometry_start import odometry_rotations
 
 
@@ -46,3 +46,28 @@ def test_nothing_is_dropped_without_odometry_or_a_noise_scale() -> None:
     assert consistent_closures(case.num_nodes, case.i, case.j, case.R, w, none, [0.01])[0].all()
     assert consistent_closures(case.num_nodes, case.i, case.j, case.R, w, case.odometry,
                                [float("nan")])[0].all()
+
+
+def _greedy_reference(conflict: np.ndarray) -> np.ndarray:
+    """The rule as written: drop the member in the most conflicts (lowest index on ties),
+    remove its conflicts, repeat."""
+    conflict = conflict.copy()
+    alive = np.ones(conflict.shape[0], bool)
+    while conflict.any():
+        worst = int(np.argmax(conflict.sum(axis=1)))
+        alive[worst] = False
+        conflict[worst] = False
+        conflict[:, worst] = False
+    return alive
+
+
+def test_the_greedy_set_follows_its_rule_and_has_no_conflict() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        n = int(rng.integers(1, 40))
+        conflict = rng.random((n, n)) < rng.random()
+        conflict |= conflict.T
+        np.fill_diagonal(conflict, False)
+        alive = _mutually_consistent(conflict)
+        assert not conflict[np.ix_(alive, alive)].any()
+        np.testing.assert_array_equal(alive, _greedy_reference(conflict))

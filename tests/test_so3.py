@@ -165,3 +165,35 @@ def test_chord_from_angle_endpoints_and_clip() -> None:
     assert chord_from_angle(np.pi / 2) == pytest.approx(2.0)
     assert angle_from_chord(2 * np.sqrt(2) + 1e-9) == pytest.approx(np.pi)  # clipped
     assert angle_from_chord(0.0) == 0.0
+
+
+def test_structure_of_arrays_maps_agree_with_the_stacked_ones() -> None:
+    """so3_soa's products and maps on (3, 3, n) give so3's on (n, 3, 3): tiny, ordinary
+    and near-pi angles (the log's other branch), and matrices off SO(3) (the SVD's)."""
+    from rotavg_ros.core import so3_soa as soa
+    from rotavg_ros.core.so3 import exp_map, log_map
+
+    rng = np.random.default_rng(7)
+    v = rng.normal(size=(300, 3))
+    v[:100] *= 1e-8 / np.linalg.norm(v[:100], axis=1, keepdims=True)
+    v[100:200] *= (np.pi - 1e-4) / np.linalg.norm(v[100:200], axis=1, keepdims=True)
+    R = exp_map(v)
+    np.testing.assert_allclose(soa.from_soa(soa.exp(v.T)), R, atol=1e-14)
+    np.testing.assert_allclose(soa.log(soa.to_soa(R)).T, log_map(R), atol=1e-12)
+    A, B = random_rotations(50, rng), random_rotations(50, rng)
+    As, Bs = soa.to_soa(A), soa.to_soa(B)
+    for ta in (False, True):
+        for tb in (False, True):
+            expected = (np.swapaxes(A, 1, 2) if ta else A) @ (np.swapaxes(B, 1, 2) if tb else B)
+            np.testing.assert_allclose(soa.from_soa(soa.matmul(As, Bs, ta, tb)), expected,
+                                       atol=1e-14)
+    x = rng.normal(size=(3, 50))
+    np.testing.assert_allclose(soa.apply(As, x).T, (A @ x.T[:, :, None])[:, :, 0], atol=1e-14)
+    np.testing.assert_allclose(soa.apply(As, x, transpose=True).T,
+                               (np.swapaxes(A, 1, 2) @ x.T[:, :, None])[:, :, 0], atol=1e-14)
+    M = A + rng.normal(scale=1e-9, size=A.shape)
+    M[:5] = rng.normal(size=(5, 3, 3))  # far off: projected by the SVD
+    M[5] = -A[5]  # det -1
+    out = soa.from_soa(soa.renormalize(soa.to_soa(M)))
+    np.testing.assert_allclose(out, renormalize(M), atol=1e-14)
+    assert _is_rotation(out)

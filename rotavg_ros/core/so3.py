@@ -152,7 +152,8 @@ def rotation_about_axis(axis: ArrayLike, angle_rad: ArrayLike) -> FloatArray:
     return quat_to_matrix(q)
 
 
-_NEAR_PI = 2.5  # above this angle the axis comes from the symmetric part of R
+NEAR_PI = 2.5
+""":func:`log_map`: above this angle the axis comes from the symmetric part of ``R``."""
 
 
 def _vee_skew(R: FloatArray) -> FloatArray:
@@ -184,7 +185,7 @@ def log_map(R: FloatArray) -> FloatArray:
     # theta / (2 sin theta), with its Taylor series near 0.
     scale = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, s)))
     out = scale[..., None] * v
-    near_pi = theta > _NEAR_PI
+    near_pi = theta > NEAR_PI
     if np.any(near_pi):
         Rp = R[near_pi]
         th = theta[near_pi]

@@ -29,16 +29,20 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.linalg import splu
 
-from rotavg_ros.core.so3 import exp_map, log_map, renormalize
+from rotavg_ros.core import so3_soa as soa
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 
 def edge_residuals(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray) -> FloatArray:
     """``(E, 3)`` rotation vectors ``log(R_ij^T R_i R_j^T)``."""
-    # Transposed copies, not views: numpy's batched product is several times slower on
-    # strided operands (the same sums either way).
-    rot_t = np.ascontiguousarray(np.swapaxes(rot, 1, 2))
-    return log_map(np.ascontiguousarray(np.swapaxes(R, 1, 2)) @ rot[i] @ rot_t[j])
+    return np.ascontiguousarray(_residuals(soa.to_soa(rot), i, j, soa.to_soa(R)).T)
+
+
+def _residuals(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray) -> FloatArray:
+    """:func:`edge_residuals` in the ``(3, 3, n)`` layout of :mod:`~rotavg_ros.core.so3_soa`
+    (``rot`` and ``R``), as ``(3, E)``."""
+    predicted = soa.matmul(np.take(rot, i, axis=2), np.take(rot, j, axis=2), transpose_b=True)
+    return soa.log(soa.matmul(R, predicted, transpose_a=True))
 
 
 def residual_angles(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray) -> FloatArray:
@@ -271,7 +275,8 @@ def gauss_newton_step(
     i, j, R, w = i[active], j[active], R[active], w[active]
     if n < 2 or i.size == 0:
         return rot.copy(), None
-    e = edge_residuals(rot, i, j, R) if residuals is None else residuals[active]
+    rs = soa.to_soa(rot)  # the products below in the (3, 3, n) layout: several times faster
+    e = _residuals(rs, i, j, soa.to_soa(R)) if residuals is None else residuals[active].T
     if laplacian is None:
         L, nodes = anchored_laplacian(n, i, j, w)
         if nodes.size == 0:
@@ -280,13 +285,12 @@ def gauss_newton_step(
     # The normal equations in the rotated variables v_i = R_i^T d_i (module docstring):
     # L v = -B^T b, where the gradient b_i += w P e, b_j -= w e (P = R_i R_j^T) turns into
     # R_i^T P e = R_j^T e at i and -R_j^T e at j. Then d_i = R_i v_i.
-    u = w[:, None] * (e[:, None, :] @ rot[j])[:, 0, :]  # w R_j^T e, as rows
+    u = (w * soa.apply(np.take(rs, j, axis=2), e, transpose=True)).T  # w R_j^T e, as rows
     Bb = scatter_add(i, u, n) - scatter_add(j, u, n)
     nodes = laplacian.nodes
-    d = np.zeros((n, 3))
-    d[nodes] = (rot[nodes] @ laplacian.solve(-Bb[nodes])[:, :, None])[:, :, 0]
-    step = exp_map(d)
-    return renormalize(step @ rot), laplacian
+    d = np.zeros((3, n))
+    d[:, nodes] = soa.apply(np.take(rs, nodes, axis=2), laplacian.solve(-Bb[nodes]).T)
+    return soa.from_soa(soa.renormalize(soa.matmul(soa.exp(d), rs))), laplacian
 
 
 PROBE_BLOCK = 8192
@@ -377,7 +381,8 @@ def refine_least_squares(
     laplacian: Factor | None = None  # the weights stay: one factorization serves
     for _ in range(iterations):
         new, laplacian = gauss_newton_step(rot, i, j, R, w, laplacian)
-        moved = np.linalg.norm(log_map(new @ np.swapaxes(rot, 1, 2)), axis=-1)
+        moved = np.linalg.norm(
+            soa.log(soa.matmul(soa.to_soa(new), soa.to_soa(rot), transpose_b=True)), axis=0)
         rot = new
         if moved.size == 0 or float(moved.max()) < tolerance:
             break
