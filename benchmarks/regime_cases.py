@@ -369,6 +369,42 @@ def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float 
                       max(noise, 1.0))
 
 
+# ----------------------------------------------------------------------------- planar
+
+
+def planar_case(name: str, base: RegimeCase, *, odo_noise_deg: float,
+                loop_noise_deg: float, seed: int = 0,
+                min_false_deg: float = MIN_FALSE_DEG) -> RegimeCase:
+    """``base``'s edges and true / false split on a planar robot: every rotation about z.
+
+    Headings are a random walk (``N(0, 4 deg)`` per id); a true edge measures the heading
+    difference plus ``N(0, sigma)`` (odometry ``|i - j| = 1`` at ``odo_noise_deg``, the
+    others at ``loop_noise_deg``); a false one is off by a heading drawn uniformly from
+    ``min_false_deg`` to 180 deg, either sign, as a 2D front end's wrong match is. The
+    noise is one-dimensional, so the noise models agree here. What this tests: noise and
+    errors on one axis (the verification's noise model assumes three), and false closures
+    that the odometry's drift can partly explain.
+    """
+    rng = rng_for(name, seed)
+    heading = np.cumsum(rng.normal(0.0, np.radians(4.0), base.num_nodes))
+    z = np.array([0.0, 0.0, 1.0])
+    gt = rotation_about_axis(z, heading)
+    i, j = base.i, base.j
+    inlier = np.ones(i.size, bool) if base.inlier is None else base.inlier
+    sigma = np.radians(np.where(np.abs(i - j) == 1, odo_noise_deg, loop_noise_deg))
+    delta = heading[i] - heading[j] + rng.normal(0.0, 1.0, i.size) * sigma
+    false = np.flatnonzero(~inlier)
+    off = rng.uniform(np.radians(min_false_deg), np.pi, false.size)
+    delta[false] = heading[i[false]] - heading[j[false]] + off * rng.choice([-1.0, 1.0],
+                                                                            false.size)
+    noise = max(odo_noise_deg, loop_noise_deg)
+    desc = (f"planar: {base.description or base.name}'s edges, headings only, noise "
+            f"{odo_noise_deg:g} / {loop_noise_deg:g} deg, {false.size} false")
+    return RegimeCase(name, base.family, base.num_nodes, i, j,
+                      rotation_about_axis(z, delta), gt, None, base.inlier, noise, desc,
+                      max(noise, 1.0))
+
+
 # ------------------------------------------------------- chains in pieces, revisited routes
 
 

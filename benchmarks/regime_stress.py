@@ -1,11 +1,13 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Eighteen cases outside the record suite of :mod:`benchmarks.regimes`: thirteen drawn with
+Twenty-one cases outside the record suite of :mod:`benchmarks.regimes`: thirteen drawn with
 the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share),
-and five graphs of kinds the suite has none of: chains in pieces that only loop closures
+five graphs of kinds the suite has none of: chains in pieces that only loop closures
 join (two or three sessions; a chain with dropped odometry) and a route driven three times,
-whose true closures come in runs. They look
+whose true closures come in runs; and three planar robots (every rotation about z, noise
+and false closures in heading only; on the chain, false closures from 10 deg off) on the
+edges of suite cases. They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
 ``paper`` profile (ours, the oracle, every installed peer) as the suite does
@@ -37,6 +39,7 @@ from benchmarks.regime_cases import (
     chain_case,
     dense_case,
     pieces_case,
+    planar_case,
     revisit_case,
     slam_case,
 )
@@ -67,6 +70,11 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
     def revisit(name: str, lap: int, laps: int, **extra: Any) -> Callable[[], RegimeCase]:
         return lambda: revisit_case(name, lap, laps, seed=seed, noise_model=model, **extra)
 
+    def planar(name: str, base: Callable[[], RegimeCase], odo: float, loop: float,
+               **extra: Any) -> Callable[[], RegimeCase]:
+        return lambda: planar_case(name, base(), odo_noise_deg=odo, loop_noise_deg=loop,
+                                   seed=seed, **extra)
+
     return [
         slam("stress/torus3D/noise5", "torus3D", noise_deg=5.0),
         slam("stress/torus3D/noise10+rand5", "torus3D", noise_deg=10.0, random_false=0.05),
@@ -94,6 +102,14 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
         dense("stress/dense200-deg10/out30-noise3", 200, 10, outliers=0.3, noise_deg=3.0),
         dense("stress/dense400/out30-noise5", 400, 40, outliers=0.3, noise_deg=5.0),
         dense("stress/dense100/out70", 100, 50, outliers=0.7),
+        planar("stress/planar/chain/1000/rand40-min10",
+               chain("chain/1000/rand40", 1000, closures=36, false_random=0.40), 1.5, 2.0,
+               min_false_deg=10.0),
+        planar("stress/planar/parking-garage/rand5",
+               slam("slam/parking-garage/rand5", "parking-garage", random_false=0.05),
+               1.0, 1.0),
+        planar("stress/planar/smallGrid3D/rand10",
+               slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10), 1.0, 1.0),
     ]
 
 

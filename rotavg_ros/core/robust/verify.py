@@ -25,7 +25,10 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    here on (known inliers, uncapped in the choice cost); where those disagree, also from
    the best of the starts on pairwise-consistent closure sets (:func:`consistent_starts`,
    :mod:`.closure_consistency`); step 3 on the result of the lowest truncated squares
-   (:func:`truncated_squares`, the GNC's objective). Then runs of loop closures that pull
+   (:func:`truncated_squares`, the GNC's objective). Where such a start fits its own edges
+   at a noise scale below ``RESCALE_BELOW`` of step 3's (false closures bent step 3's fit
+   and inflated its scale), the pass runs again at that scale, every candidate costed
+   there. Then runs of loop closures that pull
    the fit all one way (:mod:`.closure_runs`) are left out where that lowers the choice
    cost (:func:`_leave_runs_out`).
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
@@ -101,6 +104,10 @@ or so stages only walked the solution through near-L1 fits back to where it bega
 regime benchmark's 30 sparse cases with false edges of seeds 0 and 3: the same errors to
 the third decimal, 7-31% fewer Gauss-Newton steps in the re-solve. The pass from the
 odometry chain keeps the flat start: the chain's drift is what it must escape."""
+
+RESCALE_BELOW = 0.75
+"""The tight pass runs again at the noise scale of a pairwise-consistent start's own fit
+when that is below this fraction of step 3's (see :func:`robust_resolve`)."""
 
 CONSISTENCY_SCALES = (1.0, 0.5, 0.25)
 """The pairwise closure test of the tight pass runs at the fitted noise scale times each of
@@ -307,6 +314,14 @@ def _settle(
     return rot, inlier, noise, t  # the final fit's noise and t; its inliers stay
 
 
+def _noise_of(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+              fit: BoolArray, max_threshold: float, tree: BoolArray) -> float:
+    """The noise scale of the least-squares fit ``rot`` of the edges ``fit`` (inf where too
+    few of its residuals are informative to fit one)."""
+    sigma = _fit_and_classify(rot, i, j, R, w, fit, max_threshold, tree)[0].sigma
+    return sigma if math.isfinite(sigma) else math.inf
+
+
 def _cap(noise: NoiseModel, initial_threshold: float) -> float:
     """Cap of an edge's say in the choice: CHOICE_SIGMAS fitted noise scales."""
     return CHOICE_SIGMAS * noise.sigma if math.isfinite(noise.sigma) else initial_threshold
@@ -503,7 +518,23 @@ def robust_resolve(
         if len(candidates) > 1:
             consistent = consistent_starts(num_nodes, i, j, R, w, odometry, noise.sigma)
             if consistent:  # (the GNC keeps the order of the starts' costs: from the best)
-                tight_from(min(consistent, key=tls), TIGHT_START_MU)
+                tight_from(min((c[0] for c in consistent), key=tls), TIGHT_START_MU)
+                # The noise scale came from step 3's fit, which false closures the odometry's
+                # drift can explain may have bent: then a consistent start fits its own
+                # edges at a clearly lower scale, and at step 3's the bent fit costs least.
+                # The pass runs again at the lower scale, every candidate costed there.
+                rescaled = min(_noise_of(start, i, j, R, w, consistent_set, max_threshold,
+                                         tree) for start, consistent_set in consistent)
+                if rescaled < RESCALE_BELOW * noise.sigma:
+                    threshold = np.minimum(GNC_SIGMAS * rescaled / np.sqrt(w),
+                                           initial_threshold)
+                    tls = functools.partial(truncated_squares, i=i, j=j, R=R, w=w,
+                                            c=GNC_SIGMAS * rescaled, trusted=known)
+                    candidates = [(tls(c[1]), c[1], c[2]) for c in candidates]
+                    tight_from(rot, TIGHT_START_MU)
+                    for chain_start in chain.values():
+                        tight_from(chain_start, 0.0)
+                    tight_from(min((c[0] for c in consistent), key=tls), TIGHT_START_MU)
         best = min(candidates, key=lambda c: c[0])
         if not np.array_equal(best[2], inlier):  # else: the same fit as step 3's
             tight = _settle(best[1], i, j, R, w, best[2], known, tree, rounds,
@@ -576,14 +607,15 @@ def _leave_runs_out(
 
 
 def consistent_starts(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
-                      w: FloatArray, odometry: BoolArray, sigma: float) -> list[FloatArray]:
+                      w: FloatArray, odometry: BoolArray, sigma: float,
+                      ) -> list[tuple[FloatArray, BoolArray]]:
     """Starts for the tight GNC that no group of mutually consistent false closures bends:
     least squares, from their chordal relaxation, on the odometry and a pairwise-consistent
     set of loop closures (:func:`~.closure_consistency.consistent_closures`), the test run
     at ``sigma`` times each of ``CONSISTENCY_SCALES`` (a noise scale fitted where false
     closures bent the solution is too large, and lets a group through). One start per
-    distinct set that drops a closure and connects every node."""
-    starts: list[FloatArray] = []
+    distinct set that drops a closure and connects every node, with that set."""
+    starts: list[tuple[FloatArray, BoolArray]] = []
     seen: list[BoolArray] = []
     sigmas = [sigma * scale for scale in CONSISTENCY_SCALES]
     for keep in consistent_closures(num_nodes, i, j, R, w, odometry, sigmas):
@@ -592,7 +624,7 @@ def consistent_starts(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
         seen.append(keep)
         if connects_all(num_nodes, i, j, keep):
             start = chordal_rotations(num_nodes, i[keep], j[keep], R[keep], w[keep])
-            starts.append(refine_least_squares(start, i, j, R, w * keep))
+            starts.append((refine_least_squares(start, i, j, R, w * keep), keep))
     return starts
 
 
