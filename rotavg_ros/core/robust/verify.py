@@ -512,29 +512,32 @@ def robust_resolve(
             if not any(np.array_equal(tight_inlier, c[2]) for c in candidates):
                 candidates.append((tls(tight_rot), tight_rot, tight_inlier))
 
-        tight_from(rot, TIGHT_START_MU)
-        for chain_start in chain.values():
-            tight_from(chain_start, 0.0)
+        def from_every_start(consistent: list[FloatArray]) -> None:
+            tight_from(rot, TIGHT_START_MU)
+            for chain_start in chain.values():
+                tight_from(chain_start, 0.0)
+            if consistent:  # (the GNC keeps the order of the starts' costs: from the best)
+                tight_from(min(consistent, key=tls), TIGHT_START_MU)
+
+        from_every_start([])
         if len(candidates) > 1:
             consistent = consistent_starts(num_nodes, i, j, R, w, odometry, noise.sigma)
-            if consistent:  # (the GNC keeps the order of the starts' costs: from the best)
-                tight_from(min((c[0] for c in consistent), key=tls), TIGHT_START_MU)
+            if consistent:
+                fits = [start for start, _ in consistent]
+                tight_from(min(fits, key=tls), TIGHT_START_MU)
                 # The noise scale came from step 3's fit, which false closures the odometry's
                 # drift can explain may have bent: then a consistent start fits its own
                 # edges at a clearly lower scale, and at step 3's the bent fit costs least.
                 # The pass runs again at the lower scale, every candidate costed there.
-                rescaled = min(_noise_of(start, i, j, R, w, consistent_set, max_threshold,
-                                         tree) for start, consistent_set in consistent)
+                rescaled = min(_noise_of(start, i, j, R, w, kept, max_threshold, tree)
+                               for start, kept in consistent)
                 if rescaled < RESCALE_BELOW * noise.sigma:
                     threshold = np.minimum(GNC_SIGMAS * rescaled / np.sqrt(w),
                                            initial_threshold)
                     tls = functools.partial(truncated_squares, i=i, j=j, R=R, w=w,
                                             c=GNC_SIGMAS * rescaled, trusted=known)
                     candidates = [(tls(c[1]), c[1], c[2]) for c in candidates]
-                    tight_from(rot, TIGHT_START_MU)
-                    for chain_start in chain.values():
-                        tight_from(chain_start, 0.0)
-                    tight_from(min((c[0] for c in consistent), key=tls), TIGHT_START_MU)
+                    from_every_start(fits)
         best = min(candidates, key=lambda c: c[0])
         if not np.array_equal(best[2], inlier):  # else: the same fit as step 3's
             tight = _settle(best[1], i, j, R, w, best[2], known, tree, rounds,
