@@ -216,17 +216,20 @@ class VerifyOptions:
     that false closures bent, the fit on every edge ran its whole budget of L-BFGS steps
     for a solution the verification then replaced by a refit on those same inliers."""
     refit_from_resolve: bool = field(default=True, metadata=_flat("refit_from_resolve"))
-    """Sparse mode: the DMF fits on the edges the verification calls inliers (robust first's
-    fit, the refit after the re-solve wins, the refit without the outliers a kept DMF
-    shows) skip the edge filter, and the first two start from the re-solve's rotations.
+    """The DMF fits on the edges the verification calls inliers (sparse mode: robust first's
+    fit, the refit without the outliers a kept DMF shows; either mode: the refit after the
+    re-solve wins) skip the edge filter, and those after a re-solve start from its rotations.
     The re-solve has already judged every edge against the fitted noise; the filter's
     fixed 8.1 deg would drop good edges of a high-noise graph again (parking-garage at
     5 deg: 1,057 of 6,274), and a fit from its own chordal start can settle far off (at
     20 deg: 44-70 deg median against the re-solve's 21-24). The first two stay filtered
     and cold where the re-solve's residuals look Gaussian
     (:data:`~rotavg_ros.core.robust.noise.GAUSSIAN_SHAPE`): least squares is the better
-    estimator there. Dense mode, and off: the filtered refit from the fit's own start (as
-    before)."""
+    estimator there. In dense mode the refit after the re-solve started filtered and cold
+    until 2026-12-02: on a clean dense graph at 5 deg folded noise the filter removed a
+    third to a half of the true edges, the DMF on the rest lost to the re-solve, and so did
+    its refit (150 nodes: least squares' 0.95 deg median; now 0.56). Off: the filtered
+    refit from the fit's own start (as before)."""
     least_squares_where_gaussian: bool = field(
         default=True, metadata=_flat("least_squares_where_gaussian"))
     """Sparse mode, robust first: where the re-solve's standardized inlier residuals look

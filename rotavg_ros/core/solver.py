@@ -290,7 +290,9 @@ class RotationAverager:
                     and redundancy(n, out.inlier) >= chain_like):
                 # (else the DMF on these inliers has just lost, or the re-solve's residuals
                 # or its inliers' redundancy said least squares)
-                from_resolve = sparse and self._refit_from_resolve(out.resolve_t, out.inlier)
+                # In either mode from the re-solve, unfiltered, unless its residuals look
+                # Gaussian (the filter would drop the true edges of a high-noise graph again).
+                from_resolve = self._refit_from_resolve(out.resolve_t, out.inlier)
                 # A cold, filtered refit on every edge repeats the first fit exactly.
                 repeat = initial is None and not from_resolve and bool(np.all(out.inlier))
                 final = self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap,
@@ -418,8 +420,7 @@ class RotationAverager:
         return opt.least_squares_below_redundancy if opt.least_squares_where_gaussian else 0.0
 
     def _refit_from_resolve(self, t: FloatArray, inlier: BoolArray) -> bool:
-        """Sparse mode: whether the DMF fits on the re-solve's inliers skip the filter and
-        start from it (``VerifyOptions.refit_from_resolve``). Not where the re-solve's
+        """Whether the DMF fits on the re-solve's inliers skip the filter and start from it (``VerifyOptions.refit_from_resolve``). Not where the re-solve's
         standardized inlier residuals ``t`` look Gaussian (:func:`residual_shape`): there
         least squares is the better estimator, and an L1 fit started from it always lowers
         the choice's L1 cost, so it would replace it."""
