@@ -1,8 +1,9 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Twenty-one cases outside the record suite of :mod:`benchmarks.regimes`: thirteen drawn with
+Twenty-three cases outside the record suite of :mod:`benchmarks.regimes`: fifteen drawn with
 the suite's generators at parameters the suite does not use (noise between its levels,
-denser or grouped false closures, a sparse random view graph, a very heavy outlier share),
+denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
+dense graphs at 5 deg without false edges),
 five graphs of kinds the suite has none of: chains in pieces that only loop closures
 join (two or three sessions; a chain with dropped odometry) and a route driven three times,
 whose true closures come in runs; and three planar robots (every rotation about z, noise
@@ -102,6 +103,8 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
         dense("stress/dense200-deg10/out30-noise3", 200, 10, outliers=0.3, noise_deg=3.0),
         dense("stress/dense400/out30-noise5", 400, 40, outliers=0.3, noise_deg=5.0),
         dense("stress/dense100/out70", 100, 50, outliers=0.7),
+        dense("stress/dense400/clean-noise5", 400, 40, outliers=0.0, noise_deg=5.0),
+        dense("stress/dense1000-deg30/clean-noise5", 1000, 30, outliers=0.0, noise_deg=5.0),
         planar("stress/planar/chain/1000/rand40-min10",
                chain("chain/1000/rand40", 1000, closures=36, false_random=0.40), 1.5, 2.0,
                min_false_deg=10.0),
