@@ -306,20 +306,49 @@ def test_non_unit_quaternion_in_g2o_exit_2_with_line(tmp_path: Path, capsys) -> 
     assert f"{src}:2:" in err and "norm" in err
 
 
+def test_solve_reads_a_planar_pose_graph(tmp_path: Path, capsys) -> None:
+    """A 2D g2o file (``VERTEX_SE2`` / ``EDGE_SE2``): a robot's headings along 60 poses,
+    odometry at 0.5 deg and six loop closures. The answer is the headings, about z."""
+    rng = np.random.default_rng(1)
+    theta = np.cumsum(rng.uniform(-0.4, 0.4, 60))
+    pairs = [(k, k + 1) for k in range(59)] + [(0, 30), (5, 40), (10, 50), (20, 59),
+                                               (15, 45), (25, 55)]
+    lines = [f"VERTEX_SE2 {k} 0 0 0" for k in range(60)]  # an initial guess, unused
+    for a, b in pairs:
+        d = float(theta[b] - theta[a] + np.radians(0.5) * rng.normal())
+        lines.append(f"EDGE_SE2 {a} {b} 1 0 {d!r} 100 0 0 100 0 1000")
+    src = tmp_path / "planar.g2o"
+    src.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out.g2o"
+    assert main(["solve", str(src), "-o", str(out), "-q", *FAST_ARGS]) == 0
+    assert "warning" not in capsys.readouterr().err
+    q = _read_vertices(out)
+    assert sorted(q) == list(range(60))
+    R = np.stack([quat_to_matrix(q[k]).T for k in range(60)])  # world-to-node
+    c, s = np.cos(theta), np.sin(theta)
+    truth = np.stack([np.array([[ck, sk, 0], [-sk, ck, 0], [0, 0, 1]])
+                      for ck, sk in zip(c, s, strict=True)])
+    # Gauge: both with node 0 at the identity.
+    aligned = np.einsum("kab,cb->kac", R, R[0])
+    expected = np.einsum("kab,cb->kac", truth, truth[0])
+    assert np.degrees(geodesic_distance(aligned, expected)).max() < 2.0
+    np.testing.assert_allclose(aligned[:, 2, 2], 1.0, atol=1e-6)  # about z
+
+
 def test_skipped_g2o_tags_are_reported(tmp_path: Path, capsys) -> None:
     g2o = _write_g2o(tmp_path / "graph.g2o", _truth()[:5])
     lines = g2o.read_text().splitlines()
-    lines[3] = "EDGE_SE2 1 2 0 0 0 1 0 0 1 0 1"
+    lines[3] = "EDGE_SE2_XY 1 2 0 0 1 0 1"
     g2o.write_text("\n".join(lines) + "\n")
     out = tmp_path / "o.g2o"
     assert main(["solve", str(g2o), "-o", str(out), "-q", *FAST_ARGS]) == 0
     err = capsys.readouterr().err
-    assert "rotavg: warning:" in err and "EDGE_SE2 x1" in err
-    only = tmp_path / "se2.g2o"
-    only.write_text("EDGE_SE2 1 2 0 0 0 1 0 0 1 0 1\n")
+    assert "rotavg: warning:" in err and "EDGE_SE2_XY x1" in err
+    only = tmp_path / "xy.g2o"
+    only.write_text("EDGE_SE2_XY 1 2 0 0 1 0 1\n")
     assert main(["solve", str(only), "-o", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "no EDGE_SE3:QUAT edges" in err and "EDGE_SE2 x1" in err
+    assert "no EDGE_SE3:QUAT or EDGE_SE2 edges" in err and "EDGE_SE2_XY x1" in err
 
 
 def test_evaluate_warns_when_ids_only_partly_overlap(tmp_path: Path, capsys) -> None:

@@ -59,6 +59,11 @@ def test_missing_information_gives_unit_weight(tmp_path: Path) -> None:
     ("EDGE_SE3:QUAT 0 1.5 0 0 0 0 0 0 1", "integer"),
     ("VERTEX_SE3:QUAT 0 0 0 0 0 0 1", "expects"),
     ("BOGUS_TAG 1 2 3", "unknown tag"),
+    ("EDGE_SE2 0 1 0 0 0.5 1 0", "expects"),
+    ("EDGE_SE2 0 1 0 0 nan", "non-finite"),
+    ("EDGE_SE2 2 2 0 0 0.5", "self-loop"),
+    ("EDGE_SE2 0 1 0 0 0.5 1 0 0 1 0 0", "positive definite"),
+    ("VERTEX_SE2 0 1 2", "expects"),
 ])
 def test_malformed_line_names_file_and_line(tmp_path: Path, line: str, fragment: str) -> None:
     p = _write(tmp_path, "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n\n" + line, name="bad.g2o")
@@ -98,6 +103,32 @@ def test_the_first_bad_line_in_the_file_is_the_one_reported(tmp_path: Path,
         with pytest.raises(G2oFormatError, match=fragment) as info:
             read_g2o(_write(tmp_path, "\n".join([good, first, second, malformed])))
         assert info.value.line == line
+
+
+def test_planar_graph_reads_headings_about_z(tmp_path: Path) -> None:
+    """``VERTEX_SE2`` is a body's pose in the world (world-to-node ``Rz(theta)^T``);
+    ``EDGE_SE2`` measures ``T_i^-1 T_j``, so ``R_ij = Rz(dtheta) = R_i R_j^T``; the weight
+    is the heading's information ``I33``."""
+    theta = {3: 0.3, 7: -2.9, 9: 3.1}
+    lines = [f"VERTEX_SE2 {k} 1.0 -2.0 {t!r}" for k, t in theta.items()]
+    lines += [f"EDGE_SE2 3 7 0.5 0.1 {theta[7] - theta[3]!r} 10 0 0 10 0 40",
+              f"EDGE_SE2 9 7 0 0 {theta[7] - theta[9] + 2 * np.pi!r}",
+              "EDGE_SE3:QUAT 3 9 0 0 0 0 0 0 1"]
+    g = read_g2o(_write(tmp_path, "\n".join(lines)))
+    assert (g.num_vertices, g.num_edges, g.num_unsupported) == (3, 3, 0)
+    assert g.graph.node_ids == [3, 7, 9]
+    e = g.graph.edge_arrays()
+    ids = g.graph.node_ids
+    edges = {(ids[a], ids[b]): (R, w) for a, b, R, w in zip(e.i, e.j, e.R, e.weight,
+                                                           strict=True)}
+    assert sorted(edges) == [(3, 7), (3, 9), (7, 9)]
+    assert [edges[k][1] for k in [(3, 7), (7, 9), (3, 9)]] == [40.0, 1.0, 1.0]
+    for a, b in [(3, 7), (7, 9)]:
+        Ri, Rj = g.vertex_rotations[a], g.vertex_rotations[b]
+        np.testing.assert_allclose(edges[a, b][0], Ri @ Rj.T, atol=1e-12)
+    c, s = np.cos(theta[3]), np.sin(theta[3])
+    np.testing.assert_allclose(g.vertex_rotations[3], [[c, s, 0], [-s, c, 0], [0, 0, 1]],
+                               atol=1e-15)
 
 
 def test_unknown_tag_skipped_when_not_strict(tmp_path: Path) -> None:

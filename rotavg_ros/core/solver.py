@@ -420,10 +420,11 @@ class RotationAverager:
         return opt.least_squares_below_redundancy if opt.least_squares_where_gaussian else 0.0
 
     def _refit_from_resolve(self, t: FloatArray, inlier: BoolArray) -> bool:
-        """Whether the DMF fits on the re-solve's inliers skip the filter and start from it (``VerifyOptions.refit_from_resolve``). Not where the re-solve's
-        standardized inlier residuals ``t`` look Gaussian (:func:`residual_shape`): there
-        least squares is the better estimator, and an L1 fit started from it always lowers
-        the choice's L1 cost, so it would replace it."""
+        """Whether the DMF fits on the re-solve's inliers skip the filter and start from it
+        (``VerifyOptions.refit_from_resolve``). Not where the re-solve's standardized
+        inlier residuals ``t`` look Gaussian (:func:`residual_shape`): there least squares
+        is the better estimator, and an L1 fit started from it always lowers the choice's
+        L1 cost, so it would replace it."""
         return self.options.verify.refit_from_resolve and not looks_gaussian(t, inlier)
 
     def _fit_inliers(self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,

@@ -1,4 +1,4 @@
-"""Read and write 3D pose graphs in the g2o text format (rotation part only).
+"""Read and write pose graphs in the g2o text format (rotation part only; 3D, and 2D read).
 
 Conventions
 -----------
@@ -12,6 +12,13 @@ Conventions
   in the order (x, y, z, rx, ry, rz); entries 15..20 are the 3x3 rotation block. The edge
   weight is ``trace(rotation block) / 3`` (raw, not normalised; 1 when the information part
   is absent). Translations are parsed, checked for finiteness and ignored.
+* 2D graphs: ``VERTEX_SE2 id x y theta`` is the pose of body ``id`` in the world, so its
+  world-to-node rotation is ``Rz(theta)^T``; ``EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22
+  I23 I33`` measures ``T_i^-1 T_j``, so its ``R_ij`` is ``Rz(dtheta)`` (about z, the plane's
+  normal). The information entries are the row-major upper triangle of the 3x3 information
+  in the order (x, y, theta); the edge weight is ``I33``, the heading's (1 when absent).
+  Each such line is read as the 3D line of the same rotation and weight (a quaternion
+  about z, a rotation block ``I33 * identity``), so both kinds may share one file.
 """
 
 from __future__ import annotations
@@ -36,17 +43,20 @@ PathLike = str | os.PathLike[str]
 
 VERTEX_TAG = "VERTEX_SE3:QUAT"
 EDGE_TAG = "EDGE_SE3:QUAT"
+VERTEX_SE2_TAG = "VERTEX_SE2"
+EDGE_SE2_TAG = "EDGE_SE2"
 
 #: g2o tags that are recognised but not used for rotation averaging (counted and skipped).
 UNSUPPORTED_TAGS: frozenset[str] = frozenset({
     "FIX", "PARAMS_SE3OFFSET", "PARAMS_CAMERAPARAMETERS",
-    "VERTEX_SE2", "EDGE_SE2", "VERTEX_XY", "EDGE_SE2_XY", "EDGE_SE2_PRIOR",
+    "VERTEX_XY", "EDGE_SE2_XY", "EDGE_SE2_PRIOR",
     "VERTEX_SE3:EXPMAP", "VERTEX_SE3:EULER", "EDGE_SE3:EULER", "EDGE_SE3_PRIOR",
     "VERTEX_TRACKXYZ", "VERTEX_POINT_XYZ", "EDGE_SE3_TRACKXYZ", "EDGE_SE3_POINTXYZ",
     "EDGE_PROJECT_XYZ2UV:EXPMAP", "EDGE_SE3_EXPMAP",
 })
 
 _N_INFO = 21
+_N_INFO_SE2 = 6
 _ROT_INFO = slice(15, 21)  # I44 I45 I46 I55 I56 I66
 _MIN_QUAT_NORM = 1e-6
 QUAT_NORM_TOL = 1e-3
@@ -69,7 +79,8 @@ class G2oGraph:
 
     ``graph`` has integer node ids equal to the g2o vertex ids (vertices first, in file
     order, then nodes first seen on an edge). ``vertex_rotations`` maps vertex id to the
-    world-to-node rotation of its ``VERTEX_SE3:QUAT`` line (empty when there is none).
+    world-to-node rotation of its ``VERTEX_SE3:QUAT`` or ``VERTEX_SE2`` line (empty when
+    there is none).
     """
 
     graph: ViewGraph
@@ -78,7 +89,7 @@ class G2oGraph:
     num_vertices: int = 0
     num_edges: int = 0
     num_unsupported: int = 0
-    """Lines with a known g2o tag that is not used here (``FIX``, ``EDGE_SE2``, ...)."""
+    """Lines with a known g2o tag that is not used here (``FIX``, ``EDGE_SE2_XY``, ...)."""
     num_unknown: int = 0
     """Lines with an unknown tag (only non-zero with ``strict=False``)."""
     skipped_tags: dict[str, int] = field(default_factory=dict)
@@ -180,11 +191,58 @@ def _parse_edge(
         raise G2oFormatError(
             path, lineno, f"{EDGE_TAG} expects 9 fields (i j x y z qx qy qz qw) plus "
             f"optionally {_N_INFO} information entries, got {len(tokens) - 1}")
+    i, j = _edge_ends(path, lineno, tokens)
+    return i, j, tokens[3:]
+
+
+def _edge_ends(path: PathLike, lineno: int, tokens: list[str]) -> tuple[int, int]:
+    """The two vertex ids of an edge line; a self-loop raises."""
     i = _int(path, lineno, tokens[1], "edge vertex id")
     j = _int(path, lineno, tokens[2], "edge vertex id")
     if i == j:
         raise G2oFormatError(path, lineno, f"self-loop on vertex {i}")
-    return i, j, tokens[3:]
+    return i, j
+
+
+def _parse_vertex_se2(path: PathLike, lineno: int, tokens: list[str]
+                      ) -> tuple[int, FloatArray]:
+    if len(tokens) != 5:
+        raise G2oFormatError(
+            path, lineno, f"{VERTEX_SE2_TAG} expects 4 fields (id x y theta), "
+            f"got {len(tokens) - 1}")
+    vid = _int(path, lineno, tokens[1], "vertex id")
+    theta = _floats(path, lineno, tokens[2:], VERTEX_SE2_TAG)[2]
+    return vid, _about_z(theta).T  # node-to-world -> world-to-node
+
+
+def _parse_edge_se2(
+    path: PathLike, lineno: int, tokens: list[str]
+) -> tuple[int, int, list[str]]:
+    """As :func:`_parse_edge` for an ``EDGE_SE2`` line: ``(i, j, the number tokens of the
+    ``EDGE_SE3:QUAT`` line of the same rotation and weight)``. Its numbers are checked
+    here (a finite heading, and ``I33 > 0`` with the 3x3 information positive definite)."""
+    if len(tokens) not in (6, 6 + _N_INFO_SE2):
+        raise G2oFormatError(
+            path, lineno, f"{EDGE_SE2_TAG} expects 5 fields (i j dx dy dtheta) plus "
+            f"optionally {_N_INFO_SE2} information entries, got {len(tokens) - 1}")
+    i, j = _edge_ends(path, lineno, tokens)
+    vals = _floats(path, lineno, tokens[3:], EDGE_SE2_TAG)
+    dx, dy, theta = vals[:3]
+    numbers = [dx, dy, 0.0, 0.0, 0.0, math.sin(theta / 2.0), math.cos(theta / 2.0)]
+    if len(vals) > 3:
+        a, b, c, d, e, f = vals[3:]
+        info = np.array([[a, b, c], [b, d, e], [c, e, f]])
+        if f <= 0.0 or np.linalg.eigvalsh(info)[0] <= 0.0:
+            raise G2oFormatError(path, lineno, "information matrix not positive definite "
+                                 f"(heading entry I33 = {f})")
+        numbers += [0.0] * 15 + [f, 0.0, 0.0, f, 0.0, f]
+    return i, j, [repr(v) for v in numbers]
+
+
+def _about_z(theta: float) -> FloatArray:
+    """The rotation by ``theta`` radians about z."""
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class _EdgeNumbers(NamedTuple):
@@ -262,14 +320,15 @@ def _edge_rotations(path: PathLike, linenos: list[int], numbers: _EdgeNumbers
 
 # ---------------------------------------------------------------------- public API
 def read_g2o(path: PathLike, strict: bool = True) -> G2oGraph:
-    """Parse the ``VERTEX_SE3:QUAT`` and ``EDGE_SE3:QUAT`` lines of a g2o file.
+    """Parse the ``VERTEX_SE3:QUAT`` and ``EDGE_SE3:QUAT`` lines of a g2o file, and the
+    ``VERTEX_SE2`` and ``EDGE_SE2`` lines of a 2D one (see the module docstring).
 
     Edge rotations become ``R_ij ~= R_i R_j^T`` (world-to-node ``R_i``) with raw weight
-    ``trace(rotation information) / 3``. Known but unused tags are counted and skipped; an
-    unknown tag raises :class:`G2oFormatError` unless ``strict=False`` (then it is counted
-    and skipped). Malformed lines, self-loops, NaN/Inf, zero or non-unit quaternions
-    (beyond :data:`QUAT_NORM_TOL`), a non-positive-definite rotation information block and
-    duplicate vertex ids always raise.
+    ``trace(rotation information) / 3`` (2D: ``I33``). Known but unused tags are counted
+    and skipped; an unknown tag raises :class:`G2oFormatError` unless ``strict=False``
+    (then it is counted and skipped). Malformed lines, self-loops, NaN/Inf, zero or
+    non-unit quaternions (beyond :data:`QUAT_NORM_TOL`), a non-positive-definite rotation
+    information block and duplicate vertex ids always raise.
     """
     graph = ViewGraph()
     vertices: dict[int, FloatArray] = {}
@@ -307,15 +366,17 @@ def _read_lines_into(path: PathLike, lines: list[str], strict: bool, graph: View
     line's ids and number tokens (converted later, all at once)."""
     for lineno, line in _tokenized(lines):
         tag = line[0]
-        if tag == EDGE_TAG:
-            i, j, numbers = _parse_edge(path, lineno, line)
+        if tag in (EDGE_TAG, EDGE_SE2_TAG):
+            i, j, numbers = (_parse_edge if tag == EDGE_TAG else _parse_edge_se2)(
+                path, lineno, line)
             graph.add_node(i)  # nodes in the order the file names them
             graph.add_node(j)
             ends.append((i, j))
             linenos.append(lineno)
             tokens.append(numbers)
-        elif tag == VERTEX_TAG:
-            vid, Rv = _parse_vertex(path, lineno, line)
+        elif tag in (VERTEX_TAG, VERTEX_SE2_TAG):
+            vid, Rv = (_parse_vertex if tag == VERTEX_TAG else _parse_vertex_se2)(
+                path, lineno, line)
             if vid in vertices:
                 raise G2oFormatError(path, lineno, f"duplicate vertex id {vid}")
             vertices[vid] = Rv

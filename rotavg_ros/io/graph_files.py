@@ -10,7 +10,7 @@ import numpy as np
 
 from rotavg_ros.core.view_graph import ViewGraph
 from rotavg_ros.errors import InputError
-from rotavg_ros.io.g2o import EDGE_TAG, read_g2o
+from rotavg_ros.io.g2o import EDGE_SE2_TAG, EDGE_TAG, read_g2o
 from rotavg_ros.io.onedsfm import read_1dsfm_egs, read_1dsfm_npz
 
 
@@ -19,7 +19,7 @@ def read_graph_file(
 ) -> tuple[ViewGraph, dict[Hashable, np.ndarray]]:
     """Read ``.g2o``, a 1DSfM ``.npz`` or ``EGs.txt``; returns the graph and any GT.
 
-    ``warn`` gets a line about g2o lines skipped for their tag (e.g. ``EDGE_SE2``).
+    ``warn`` gets a line about g2o lines skipped for their tag (e.g. ``EDGE_SE2_XY``).
     """
     if not path.exists():
         raise InputError(f"{path}: no such file")
@@ -31,7 +31,7 @@ def read_graph_file(
             g2o = read_g2o(path)
             skipped = ", ".join(f"{tag} x{n}" for tag, n in sorted(g2o.skipped_tags.items()))
             if g2o.num_edges == 0:
-                raise InputError(f"{path}: no {EDGE_TAG} edges"
+                raise InputError(f"{path}: no {EDGE_TAG} or {EDGE_SE2_TAG} edges"
                                  + (f" (skipped lines: {skipped})" if skipped else ""))
             if skipped and warn is not None:
                 warn(f"{path}: skipped lines with tags not used for rotation averaging: "
