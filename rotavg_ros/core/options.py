@@ -258,8 +258,9 @@ class VerifyOptions:
     it with the re-solve by their truncated squares there, not by the L1 cost, and no DMF
     refit replaces a re-solve that stands. 0 turns this off."""
     refit_readmitted: bool = field(default=True, metadata=_flat("refit_readmitted"))
-    """Dense mode: where the DMF solution is kept but most of the edges the verification
-    calls inliers were not in its fit (the filter removed them and the verification
+    """Dense mode: where the DMF solution is kept but more than a third of the edges the
+    verification calls inliers (``solver.DENSE_UNFITTED_SHARE``) were not in its fit (the
+    filter removed them and the verification
     re-admitted them), a short DMF fit warm-started from it on those inliers (the warm
     re-solve's: depth 2, ``warm_iterations`` steps, no filter) replaces it unless its cost
     is higher. Sparse mode: the same where the re-admitted edges are more than
