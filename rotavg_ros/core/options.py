@@ -260,12 +260,12 @@ class VerifyOptions:
     refit_readmitted: bool = field(default=True, metadata=_flat("refit_readmitted"))
     """Dense mode: where the DMF solution is kept but more than a third of the edges the
     verification calls inliers (``solver.DENSE_UNFITTED_SHARE``) were not in its fit (the
-    filter removed them and the verification
-    re-admitted them), a short DMF fit warm-started from it on those inliers (the warm
-    re-solve's: depth 2, ``warm_iterations`` steps, no filter) replaces it unless its cost
-    is higher. Sparse mode: the same where the re-admitted edges are more than
-    ``solver.READMITTED_SHARE`` (5%) of its fit's, by sparse mode's refit without outliers
-    (kept unless its cost is 2% higher). Off: the kept solution stands as fitted."""
+    filter removed them and the verification re-admitted them), a short DMF fit
+    warm-started from it on those inliers (the warm re-solve's: depth 2,
+    ``warm_iterations`` steps, no filter) replaces it unless its cost is higher. Sparse
+    mode: the same where the re-admitted edges are more than ``solver.READMITTED_SHARE``
+    (5%) of its fit's, by sparse mode's refit without outliers (kept unless its cost is 2%
+    higher). Off: the kept solution stands as fitted."""
     odometry: str = field(default="auto", metadata=_flat("odometry"))
     """Which edges are odometry, trusted as inliers by the re-solve and never capped in the
     choice cost: ``consecutive`` (nodes adjacent in the order they were first added, e.g.
