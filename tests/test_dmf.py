@@ -9,11 +9,12 @@ import pytest
 import torch
 
 from rotavg_ros.core.dmf import FitSpec, factor_shapes, fit_symmetric
-from rotavg_ros.core.dmf.dense import _residuals
+from rotavg_ros.core.dmf.dense import _residuals, reweight
 from rotavg_ros.core.dmf.residuals import DenseResiduals, GatherResiduals
+from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.optim.factor_chain import FactorChain
 from rotavg_ros.core.options import DenseFitOptions
-from rotavg_ros.core.so3 import random_rotations
+from rotavg_ros.core.so3 import exp_map, random_rotations
 from rotavg_ros.core.solver import rotations_from_factor
 
 
@@ -142,3 +143,50 @@ def test_dense_fit_switches_by_density_and_matches_the_gather() -> None:
     sparse = DenseFitOptions(dense_product_density=0.5)  # a fifth of the pairs observed
     assert isinstance(_residuals(12, i[::5], j[::5], Rij[::5], w[::5], sparse),
                       GatherResiduals)
+
+
+def test_reweighting_rules() -> None:
+    """The paper's rule shrinks the weights above the median residual, cumulatively; the
+    default sets every weight afresh from the input weights, ``tau / max(r, f tau)``."""
+    r = torch.tensor([0.5, 1.0, 2.0, 4.0, 0.01], dtype=torch.float64)  # median 1.0
+    base = torch.tensor([1.0, 1.0, 1.0, 2.0, 1.0], dtype=torch.float64)
+    paper = base.clone()
+    reweight(paper, base, r, None)
+    reweight(paper, base, r, None)
+    torch.testing.assert_close(paper, torch.tensor([1.0, 1.0, 0.25, 2 / 16, 1.0],
+                                                   dtype=torch.float64))
+    fresh = base.clone()
+    reweight(fresh, base, r, 0.1)
+    reweight(fresh, base, r, 0.1)  # not cumulative
+    torch.testing.assert_close(fresh, torch.tensor([2.0, 1.0, 0.5, 0.5, 10.0],
+                                                   dtype=torch.float64))
+    exact = torch.tensor([0.0, 0.0, 0.0, 3.0, 5.0], dtype=torch.float64)  # median 0
+    reweight(fresh, base, exact, 0.1)
+    assert torch.isfinite(fresh).all()
+    torch.testing.assert_close(fresh[:3], torch.full((3,), 10.0, dtype=torch.float64))
+    assert float(fresh[3:].max()) < 1e-20
+
+
+def test_fresh_reweighting_beats_the_papers_under_folded_noise_and_outliers() -> None:
+    """A dense graph, errors ``|N(0, 5 deg)|`` about random axes, 20% false edges: the
+    default reweighting's fit has a clearly lower median error than the paper's rule."""
+    rng = np.random.default_rng(0)
+    n = 60
+    R = random_rotations(n, rng)
+    i, j = np.triu_indices(n, 1)
+    keep = rng.random(i.size) < 0.4
+    i, j = i[keep], j[keep]
+    axes = rng.normal(size=(i.size, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.abs(rng.normal(0.0, np.radians(5.0), i.size))
+    Rij = np.einsum("eab,ecb->eac", R[i], R[j]) @ exp_map(axes * angles[:, None])
+    false = rng.random(i.size) < 0.2
+    Rij[false] = random_rotations(int(false.sum()), rng)
+    spec = FitSpec(depth=2, hidden_width=64, seed=1, device="cpu", cuda_graph=False)
+    medians = {}
+    for floor in (None, 0.1):
+        fit = fit_symmetric(n, i, j, Rij, np.ones(i.size),
+                            DenseFitOptions(reweight_floor=floor), spec)
+        stats = evaluate(dict(enumerate(rotations_from_factor(fit.H))), dict(enumerate(R)))
+        medians[floor] = stats.median_deg
+    assert medians[0.1] < 0.85 * medians[None]  # measured 0.527 against 0.692 deg

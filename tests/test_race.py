@@ -185,13 +185,16 @@ def test_profiles_choose_the_hidden_width_and_the_loss_form() -> None:
     assert SolverOptions.from_flat(hidden_width=96).dense.width_for(227) == 96
     assert paper.dense_product_density is None
     assert default.dense_product_density is not None
+    assert paper.reweight_floor is None  # the paper's cumulative reweighting
+    assert default.reweight_floor is not None
 
 
 @pytest.mark.parametrize(("field", "value"), [
     ("prune_ratio", 0.0), ("prune_ratio", float("nan")), ("prune_every", 30),
     ("prune_every", 0), ("prune_after", 410), ("prune_after", -100),
     ("dense_product_density", 1.5), ("dense_product_density", -0.1),
-    ("dense_product_max_nodes", -1),
+    ("dense_product_max_nodes", -1), ("reweight_floor", 0.0), ("reweight_floor", 1.5),
+    ("reweight_floor", float("inf")),
 ])
 def test_invalid_race_and_dense_product_options_are_refused_by_name(field: str, value: Any) -> None:
     with pytest.raises(ValueError, match=f"invalid solver option: {field} "):

@@ -270,7 +270,7 @@ def test_verify_replaces_a_dmf_solution_bent_by_false_closures() -> None:
     assert 0.7 < out.noise.sigma_deg < 1.4  # 1 deg per axis
 
 
-def test_default_profile_gives_the_paper_answer_on_clean_gaussian_data() -> None:
+def test_default_profile_keeps_least_squares_on_clean_gaussian_data() -> None:
     rng = np.random.default_rng(5)
     n = 40
     truth = random_rotations(n, rng)
@@ -282,11 +282,13 @@ def test_default_profile_gives_the_paper_answer_on_clean_gaussian_data() -> None
     fast = {"depths": (2,), "iterations": 300}
     paper = average_rotations(n, i, j, R, w, SolverOptions.for_profile("paper", **fast))
     default = average_rotations(n, i, j, R, w, SolverOptions.for_profile("default", **fast))
-    # Gaussian noise: the least-squares re-solve stands against the DMF (choice step 6),
-    # and the DMF refit on its inliers (all edges) then replaces it: the paper's answer,
-    # reported as such.
-    assert default.verification == "dmf_refit"
-    assert np.allclose(default.rotations, paper.rotations, atol=1e-9)
+    # Gaussian noise: the least-squares re-solve stands against the DMF (choice step 6).
+    # Its residuals look Gaussian, so no refit starts from it, and a cold refit on every
+    # edge (the filter removed none) would repeat the DMF that lost: least squares' answer,
+    # the maximum-likelihood one here. (The paper's reweighting fits the better half of
+    # the edges; the default's DMF fit differs from the paper's.)
+    assert default.verification == "robust"
+    assert _mean_error(default.rotations, truth) < 0.85 * _mean_error(paper.rotations, truth)
     assert 0.7 < default.noise_sigma_deg < 1.4
     assert paper.verification == "" and math.isnan(paper.noise_sigma_deg)
 

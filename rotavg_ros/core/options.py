@@ -108,6 +108,15 @@ class DenseFitOptions:
     lr_final_ratio: float = 0.01
     reweighting: bool = True
     """IRLS-style reweighting of Sec. IV-C (ablation (d) turns it off; sparse mode too)."""
+    reweight_floor: float | None = 0.1
+    """How the reweighting sets the weights (beyond the paper; None: the paper's rule,
+    profile ``paper``). The paper multiplies ``w_ij`` by ``tau / r_ij`` where ``r_ij > tau``
+    at every reweighting, so an edge above the median residual a few times in a row has
+    almost no say, and the fit is an L1 fit of the better half of the edges. With a floor
+    ``f``, each reweighting sets ``w_ij = w0_ij * tau / max(r_ij, f * tau)`` afresh from the
+    input weights ``w0``: iteratively reweighted L1 towards a log-like loss, every edge
+    weighted by its own residual (at most ``1 / f`` times a median edge's weight). See
+    docs/method.md ("Reweighting") for the evidence."""
     reweight_every: int = 25
     """lambda: reweight every this many iterations ..."""
     warmup: int = 200
@@ -307,7 +316,8 @@ _GROUPS: dict[str, type] = {
 PROFILES: dict[str, dict[str, Any]] = {
     "default": {},
     "paper": {"verify": False, "prune_ratio": None, "sparse_precondition": False,
-              "max_full_width_nodes": 300, "dense_product_density": None},
+              "max_full_width_nodes": 300, "dense_product_density": None,
+              "reweight_floor": None},
 }
 """Named option sets by flat name. ``paper`` is Algorithm 1 and the DMF of the paper to the
 letter (with our documented tie rule): every depth candidate runs to the end, with the
@@ -408,6 +418,9 @@ def _problems(o: Mapping[str, Any]) -> Iterator[str]:
                  "sparse_inner_iterations", "verify_rounds"):
         if not _is_int(o[name]) or o[name] < 1:
             yield f"{name} must be an integer >= 1, got {o[name]!r}"
+    floor = o["reweight_floor"]
+    if floor is not None and not (_positive(floor) and floor <= 1.0):
+        yield f"reweight_floor must be None or in (0, 1], got {floor!r}"
     if o["prune_ratio"] is not None and not _positive(o["prune_ratio"]):
         yield f"prune_ratio must be None or a finite number > 0, got {o['prune_ratio']!r}"
     check, every, after = o["check_every"], o["prune_every"], o["prune_after"]

@@ -15,7 +15,8 @@ most pairs from the whole G_hat (:mod:`.residuals`)::
 
 Reweighting (Sec. IV-C): every ``reweight_every`` iterations after ``warmup``, with
 ``r_ij = ||H_i H_j^T - R_ij||_F`` and ``tau = median(r)``: ``w_ij *= tau / r_ij`` where
-``r_ij > tau``.
+``r_ij > tau`` (the paper's rule), or by default ``w_ij = w0_ij * tau / max(r_ij, f tau)``
+afresh from the input weights (``DenseFitOptions.reweight_floor``, :func:`reweight`).
 """
 
 from __future__ import annotations
@@ -111,6 +112,7 @@ def _fit_symmetric(
         factors = warm_factors(H0, shapes, s.init_scale, gen, dev, dt)
     chain = FactorChain(factors)
     weights = torch.as_tensor(w, device=dev).to(dt, copy=True)
+    base = weights.clone()
     res = _residuals(num_nodes, i, j, R, weights, s)
     opt = Adam(factors, lr=s.lr)
     use_graph = use_graph and opt.fused
@@ -140,9 +142,7 @@ def _fit_symmetric(
             progress(step_no + 1, loss_val)
         if (s.reweighting and step_no + 1 > s.warmup
                 and (step_no + 1 - s.warmup) % s.reweight_every == 0):
-            r = res.edge_norms()
-            tau = torch.median(r)
-            weights *= torch.where(r > tau, tau / r.clamp_min(1e-12), torch.ones_like(r))
+            reweight(weights, base, res.edge_norms(), s.reweight_floor)
             res.reweighted()
         step_no += 1
         if monitor is not None and step_no % s.check_every == 0 and monitor(step_no,
@@ -160,6 +160,21 @@ def _fit_symmetric(
         Hn = res.gradient(chain.forward())[0]
         loss_val = res.loss()
     return DMFFit(stacked(Hn), weights.double().cpu().numpy(), loss_val, step_no, stopped)
+
+
+def reweight(weights: torch.Tensor, base: torch.Tensor, r: torch.Tensor,
+             floor: float | None) -> None:
+    """Sec. IV-C's reweighting of ``weights`` (E,), in place, from the residual norms ``r``
+    and their median ``tau``. ``floor=None``: the paper's rule, cumulative,
+    ``w *= tau / r`` where ``r > tau``. Else afresh from the input weights ``base``:
+    ``w = base * tau / max(r, floor * tau)`` (a zero median gives the exactly fitted edges
+    the most weight and the others almost none)."""
+    tau = torch.median(r)
+    if floor is None:
+        weights *= torch.where(r > tau, tau / r.clamp_min(1e-12), torch.ones_like(r))
+        return
+    ratio = (r / tau.clamp_min(1e-30)).clamp_min(floor)
+    torch.div(base, ratio, out=weights)
 
 
 def _anneal_lr(step: int, start: int, end: int, s: DenseFitOptions) -> float:
