@@ -168,18 +168,19 @@ def test_reweighting_rules() -> None:
 
 
 def test_fresh_reweighting_beats_the_papers_under_folded_noise_and_outliers() -> None:
-    """A dense graph, errors ``|N(0, 5 deg)|`` about random axes, 20% false edges: the
-    default reweighting's fit has a clearly lower median error than the paper's rule."""
-    rng = np.random.default_rng(0)
-    n = 60
-    R = random_rotations(n, rng)
-    i, j = np.triu_indices(n, 1)
-    keep = rng.random(i.size) < 0.4
-    i, j = i[keep], j[keep]
+    """200 nodes, mean degree 40, errors ``|N(0, 5 deg)|`` about random axes, 20% false
+    edges: the default reweighting's fit has a clearly lower median error than the paper's
+    rule (0.77x on this draw, 0.75-0.80x on six; on 60-node graphs the ratio varies by draw,
+    0.71-1.2x)."""
+    n = 200
+    R, i, j, Rij = _clean_problem(n, 0)
+    rng = np.random.default_rng(1)
+    keep = rng.random(i.size) < 0.2
+    i, j, Rij = i[keep], j[keep], Rij[keep]
     axes = rng.normal(size=(i.size, 3))
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     angles = np.abs(rng.normal(0.0, np.radians(5.0), i.size))
-    Rij = np.einsum("eab,ecb->eac", R[i], R[j]) @ exp_map(axes * angles[:, None])
+    Rij = Rij @ exp_map(axes * angles[:, None])
     false = rng.random(i.size) < 0.2
     Rij[false] = random_rotations(int(false.sum()), rng)
     spec = FitSpec(depth=2, hidden_width=64, seed=1, device="cpu", cuda_graph=False)
@@ -189,4 +190,4 @@ def test_fresh_reweighting_beats_the_papers_under_folded_noise_and_outliers() ->
                             DenseFitOptions(reweight_floor=floor), spec)
         stats = evaluate(dict(enumerate(rotations_from_factor(fit.H))), dict(enumerate(R)))
         medians[floor] = stats.median_deg
-    assert medians[0.1] < 0.85 * medians[None]  # measured 0.527 against 0.692 deg
+    assert medians[0.1] < 0.85 * medians[None]  # measured 0.346 against 0.450 deg
