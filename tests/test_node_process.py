@@ -195,10 +195,13 @@ def test_second_signal_exits_at_once(ros: RosHarness, tmp_path: Path) -> None:  
     finally:
         node.stop()
     print(f"\nSIGINT + SIGTERM during a solve: exit after {elapsed:.2f} s")
-    assert rc in (128 + signal.SIGTERM, 0), node.output  # 0: the first one won the race
+    # 0: the first one stopped the node before the second came. Else the second one handled
+    # exits at once: SIGTERM's, or SIGINT's where SIGTERM reached Python's handler first
+    # (the kernel may deliver two signals sent back to back to two threads at once).
+    assert rc in (128 + signal.SIGTERM, 128 + signal.SIGINT, 0), node.output
     assert elapsed < EXIT_BOUND_S, node.output
     if rc:
-        assert "SIGTERM again: exiting now" in node.stderr
+        assert f"{signal.Signals(rc - 128).name} again: exiting now" in node.stderr
     assert wait_until(lambda: not any(pid_alive(p) for p in children), 5.0)
 
 
