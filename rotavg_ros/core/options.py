@@ -322,8 +322,9 @@ PROFILES: dict[str, dict[str, Any]] = {
 """Named option sets by flat name. ``paper`` is Algorithm 1 and the DMF of the paper to the
 letter (with our documented tie rule): every depth candidate runs to the end, with the
 full hidden width 3N up to 300 nodes and the loss gathered over the observed blocks;
-``default`` adds the verification stage, stops depth candidates that have clearly lost,
-uses hidden width ``min(3N, 64)`` and, on small dense graphs, the whole-matrix loss."""
+``default`` adds the verification stage, reweights every edge afresh by its own residual,
+stops depth candidates that have clearly lost, uses hidden width ``min(3N, 64)`` and, on
+small dense graphs, the whole-matrix loss."""
 
 
 @dataclass
