@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from scipy import sparse
 
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
@@ -33,6 +34,7 @@ from rotavg_ros.core.robust.verify import (
 )
 from rotavg_ros.core.so3 import exp_map, log_map, random_rotations, rotation_angle
 from rotavg_ros.core.solver import ArraySolution, average_rotations
+from rotavg_ros.core.sparse_factor import factor_spd
 
 
 def _relative(rot: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -187,6 +189,28 @@ def test_sparse_factors_share_one_elimination_order(monkeypatch: pytest.MonkeyPa
     np.testing.assert_allclose(shared.solve(b), reference, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(shared.solve(b[:, 0]), reference[:, 0], rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(other.solve(b), reference, rtol=1e-8, atol=1e-10)
+
+
+def test_sparse_factor_solves_spd_systems_in_either_order() -> None:
+    """:func:`factor_spd` with its supernode settings solves a chain-with-closures
+    Laplacian and a block Laplacian (the chordal relaxation's kind) to rounding, in
+    SuperLU's order or in the given one (kept: the identity column permutation)."""
+    rng = np.random.default_rng(11)
+    n = 600
+    i = np.concatenate([np.arange(n - 1), rng.integers(0, n, 90)])
+    j = np.concatenate([np.arange(1, n), rng.integers(0, n, 90)])
+    keep = i != j
+    i, j = np.minimum(i, j)[keep], np.maximum(i, j)[keep]
+    L, nodes = anchored_laplacian(n, i, j, 0.5 + rng.random(i.size))
+    blocks = sparse.kron(L, np.eye(3) + 0.1 * np.ones((3, 3)), format="csc")
+    for A in (L.tocsc(), blocks):
+        b = rng.normal(size=(A.shape[0], 3))
+        reference = np.linalg.solve(A.toarray(), b)
+        for ordered in (False, True):
+            lu = factor_spd(A, ordered=ordered)
+            np.testing.assert_allclose(lu.solve(b), reference, rtol=1e-8, atol=1e-10)
+            if ordered:
+                np.testing.assert_array_equal(lu.perm_c, np.arange(A.shape[0]))
 
 
 def test_laplacian_solvers_agree(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -22,9 +22,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order
-from scipy.sparse.linalg import splu
 
 from rotavg_ros.core.so3 import project_to_so3
+from rotavg_ros.core.sparse_factor import factor_spd
 from rotavg_ros.core.types import FloatArray, IntArray
 
 
@@ -86,8 +86,7 @@ def chordal_rotations(
     fixed = 3 * anchor + a
     free = np.setdiff1d(np.arange(n3), fixed)
     rhs = -(L[free][:, fixed] @ np.eye(3))
-    lu = splu(L[free][:, free].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-              options={"SymmetricMode": True})
+    lu = factor_spd(L[free][:, free].tocsc())
     X = np.empty((n3, 3))
     X[fixed] = np.eye(3)
     X[free] = lu.solve(np.ascontiguousarray(rhs))

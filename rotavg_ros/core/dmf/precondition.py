@@ -26,8 +26,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 from scipy.sparse import coo_matrix
-from scipy.sparse.linalg import splu
 
+from rotavg_ros.core.sparse_factor import factor_spd
 from rotavg_ros.core.types import FloatArray, IntArray
 
 RIDGE = 1e-9
@@ -53,8 +53,7 @@ class LaplacianPreconditioner:
             (np.concatenate([degree + ridge, -curvature, -curvature]),
              (np.concatenate([np.arange(n), i, j]), np.concatenate([np.arange(n), j, i]))),
             shape=(n, n)).tocsc()
-        self._lu = splu(laplacian, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                        options={"SymmetricMode": True})
+        self._lu = factor_spd(laplacian)
 
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
         G = g.detach().cpu().numpy().reshape(-1, 3, 3)

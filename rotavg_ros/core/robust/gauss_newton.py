@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import coo_matrix, csr_matrix
-from scipy.sparse.linalg import splu
 
 from rotavg_ros.core import so3_soa as soa
+from rotavg_ros.core.sparse_factor import factor_spd
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 
@@ -95,8 +95,7 @@ class EliminationOrder:
                                           np.ones(int(keep.sum())))
             rank = np.zeros(n, np.int64)
             if nodes.size:
-                perm = splu(L, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                            options={"SymmetricMode": True}).perm_c
+                perm = factor_spd(L).perm_c
                 # perm_c[k] is the position of column k: rank the free nodes by it
                 rank[nodes] = perm + 1
             self._rank = rank
@@ -169,8 +168,7 @@ class Factor:
         if order is not None and order.num_nodes == self._num_nodes:
             self._perm = np.argsort(order.rank[self.nodes], kind="stable")
             L = L[self._perm][:, self._perm].tocsc()
-        self._lu = splu(L, permc_spec="MMD_AT_PLUS_A" if self._perm is None else "NATURAL",
-                        diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        self._lu = factor_spd(L, ordered=self._perm is not None)
         self._matrix = None
 
     @property

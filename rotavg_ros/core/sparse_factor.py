@@ -1,0 +1,35 @@
+"""One sparse factorization for every symmetric positive definite system of the core: graph
+Laplacians (Gauss-Newton, GNC, leverages, the sparse fit's preconditioner) and the chordal
+relaxation's block Laplacian.
+
+SciPy's SuperLU in symmetric mode (diagonal pivots, the ordering of ``A + A^T``), with its
+supernode settings for these matrices: ``relax`` = ``panel_size`` = 1. Their factors are
+sparse and their supernodes small, and SuperLU's defaults (panel size 10, relaxed
+supernodes of 5 columns) cost more than they save there: one factorization of the
+Laplacian 1.4x (torus3D, 5,000 nodes) to 3x (an odometry chain of 1,000 or 3,000 nodes)
+faster, the chordal relaxation's 1.3-1.5x (``docs/benchmarks.md``, "SuperLU settings").
+The factors hold the same entries (no pivoting), up to rounding.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from scipy.sparse.linalg import SuperLU, splu
+
+SUPERNODE_RELAX = 1
+"""SuperLU's ``relax``: columns merged into a relaxed supernode at the elimination tree's
+leaves. It must not exceed ``PANEL_SIZE`` (SciPy 1.x crashed with 32 against 16)."""
+PANEL_SIZE = 1
+"""SuperLU's ``panel_size``: columns factored together."""
+
+
+def factor_spd(A: Any, ordered: bool = False) -> SuperLU:
+    """SuperLU factorization of the sparse symmetric positive definite ``A`` (CSC).
+
+    ``ordered``: ``A`` is already in a fill-reducing order (kept as is); else SuperLU orders
+    it by minimum degree on ``A + A^T``.
+    """
+    return splu(A, permc_spec="NATURAL" if ordered else "MMD_AT_PLUS_A",
+                diag_pivot_thresh=0.0, relax=SUPERNODE_RELAX, panel_size=PANEL_SIZE,
+                options={"SymmetricMode": True})
