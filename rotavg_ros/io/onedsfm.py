@@ -151,8 +151,7 @@ def _build_graph(e: IntArray, R: FloatArray) -> ViewGraph:
     graph = ViewGraph()
     for node in np.unique(e):
         graph.add_node(int(node))
-    for (a, b), Rk in zip(e.tolist(), R, strict=False):
-        graph.add_edge(a, b, Rk)
+    graph.add_edges(e[:, 0].tolist(), e[:, 1].tolist(), R)  # (same lengths: checked)
     return graph
 
 
