@@ -5,10 +5,11 @@ relaxation's block Laplacian.
 SciPy's SuperLU in symmetric mode (diagonal pivots, the ordering of ``A + A^T``), with its
 supernode settings for these matrices: ``relax`` = ``panel_size`` = 1. Their factors are
 sparse and their supernodes small, and SuperLU's defaults (panel size 10, relaxed
-supernodes of 5 columns) cost more than they save there: one factorization of the
-Laplacian 1.4x (torus3D, 5,000 nodes) to 3x (an odometry chain of 1,000 or 3,000 nodes)
-faster, the chordal relaxation's 1.3-1.5x (``docs/benchmarks.md``, "SuperLU settings").
-The factors hold the same entries (no pivoting), up to rounding.
+supernodes) cost more than they save there: one factorization of a pose graph's Laplacian
+about 1.5x faster (parking-garage, sphere2500, torus3D), an odometry chain's 2.5x, a whole
+chordal relaxation (which also builds the matrix) up to 1.3x (``python -m
+benchmarks.bench_sparse_factor``; docs/benchmarks.md, "SuperLU settings"). The factors
+hold the same entries (no pivoting), up to rounding.
 """
 
 from __future__ import annotations
