@@ -23,6 +23,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     residual_angles,
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
+from rotavg_ros.core.robust.l1_choice import choose_by_cross_validation
 from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, fit_noise, redundancy, residual_shape
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.robust.verify import (
@@ -135,6 +136,31 @@ def test_prediction_variance_matches_the_inverse() -> None:
     np.testing.assert_allclose(solved, exact, rtol=1e-9)
     # Leverages of the fitted edges add up to the degrees of freedom (per axis).
     assert float(np.sum(w * solved)) == pytest.approx(n - 1, rel=1e-9)
+
+
+def test_laplacian_factor_assembles_the_dense_matrix_directly() -> None:
+    # Random graphs on both sides of the dense / sparse decision, with parallel edges and
+    # zero-weight edges: the directly assembled factor solves as the sparse-built one.
+    rng = np.random.default_rng(3)
+    kinds = set()
+    for _ in range(60):
+        n = int(rng.integers(2, 400))
+        i = rng.integers(0, n, int(rng.integers(1, 6 * n)))
+        j = (i + rng.integers(1, n, i.size)) % n if n > 1 else i
+        w = rng.random(i.size) * (rng.random(i.size) > 0.1)
+        L, nodes = gauss_newton.anchored_laplacian(n, i, j, w)
+        direct = gauss_newton.laplacian_factor(n, i, j, w)
+        if not nodes.size:
+            assert direct is None
+            continue
+        assert direct is not None
+        built = gauss_newton.Factor(L, nodes, n)
+        assert np.array_equal(direct.nodes, nodes)
+        assert direct.sparse == built.sparse
+        kinds.add(direct.sparse)
+        b = rng.standard_normal((nodes.size, 3))
+        np.testing.assert_allclose(direct.solve(b), built.solve(b), rtol=1e-10, atol=1e-10)
+    assert kinds == {False, True}  # both paths were exercised
 
 
 def test_prediction_variance_probes_a_sparsely_factored_graph() -> None:
@@ -682,3 +708,52 @@ def test_least_squares_leaves_a_twisted_ring_that_the_relaxation_does_not() -> N
     # At the global minimum already, or with the inliers in two pieces: nothing to replace.
     assert least_squares_from_relaxation(restarted, i, j, R, w, everything) is None
     assert least_squares_from_relaxation(rot, i, j, R, w, np.arange(n) % 20 != 0) is None
+
+
+def _noisy_graph(n: int, peaked: bool, rng: np.random.Generator,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A chain plus 3n random edges and its measurements: noise peaked at zero (60% of the
+    edges at 0.2 deg, the rest at 6 deg, folded normal angles) or Gaussian (3 deg per axis)."""
+    a, b = rng.integers(0, n, 3 * n), rng.integers(0, n, 3 * n)
+    i = np.concatenate([np.arange(n - 1), a[a != b]])
+    j = np.concatenate([np.arange(1, n), b[a != b]])
+    truth = random_rotations(n, rng)
+    if peaked:
+        angle = np.radians(np.where(rng.random(i.size) < 0.6, 0.2, 6.0))
+        axis = rng.standard_normal((i.size, 3))
+        v = axis / np.linalg.norm(axis, axis=1)[:, None] * (angle * np.abs(
+            rng.standard_normal(i.size)))[:, None]
+    else:
+        v = rng.normal(0.0, np.radians(3.0), (i.size, 3))
+    R = np.einsum("eab,ebc,edc->ead", exp_map(v), truth[i], truth[j])
+    return i, j, R, truth
+
+
+@pytest.mark.parametrize("peaked", [True, False])
+def test_cross_validation_picks_l1_for_peaked_noise_and_least_squares_for_gaussian(
+        peaked: bool) -> None:
+    rng = np.random.default_rng(0)
+    n = 80
+    i, j, R, truth = _noisy_graph(n, peaked, rng)
+    w = np.ones(i.size)
+    ls = gauss_newton.refine_least_squares(truth, i, j, R, w, iterations=30)
+    verdict = choose_by_cross_validation(ls, i, j, R, w)
+    error = {k: evaluate(dict(enumerate(rot)), dict(enumerate(truth))).median_deg
+             for k, rot in (("ls", ls), ("chosen", verdict.rotations))}
+    assert verdict.l1_better == peaked
+    if peaked:  # measured: 1.19 deg against 0.23 deg
+        assert verdict.held_out_change < 0.0 and error["chosen"] < 0.5 * error["ls"]
+    else:
+        assert verdict.held_out_change > 0.0
+        assert error["chosen"] == pytest.approx(error["ls"], rel=1e-6)
+
+
+def test_cross_validation_gives_no_verdict_where_a_fold_splits_the_graph() -> None:
+    rng = np.random.default_rng(1)
+    n = 30
+    i, j = np.arange(n - 1), np.arange(1, n)  # a chain: every edge is a bridge
+    truth = random_rotations(n, rng)
+    v = rng.normal(0.0, 0.02, (i.size, 3))
+    R = np.einsum("eab,ebc,edc->ead", exp_map(v), truth[i], truth[j])
+    verdict = choose_by_cross_validation(truth, i, j, R, np.ones(i.size))
+    assert not verdict.l1_better and math.isnan(verdict.held_out_change)

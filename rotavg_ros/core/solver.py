@@ -34,6 +34,7 @@ from rotavg_ros.core.dmf.sparse import shows_outliers
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.robust.l1_choice import choose_by_cross_validation
 from rotavg_ros.core.robust.noise import looks_gaussian, redundancy
 from rotavg_ros.core.robust.verify import (
     RobustSolve,
@@ -334,7 +335,16 @@ class RotationAverager:
             final = self._refit_dmf(n, i, j, R, w, inlier, out.rotations, out.cap,
                                     warm=True, unfiltered=True)
         refitted = final is not out.rotations
-        if out.chosen == "robust" or refitted or out.relocalized:  # (the anchor may move)
+        l1 = False
+        if (sparse and opt.verify.l1_by_cross_validation and n <= opt.verify.l1_max_nodes
+                and redundancy(n, inlier) >= chain_like):
+            verdict = choose_by_cross_validation(final, i[inlier], j[inlier], R[inlier],
+                                                 w[inlier], seed=opt.runtime.seed)
+            self._say(f"cross-validation: {'L1' if verdict.l1_better else 'least squares'}"
+                      f" (held-out change {verdict.held_out_change:+.3f})")
+            if verdict.l1_better:  # (else the kept solution stands as it is)
+                final, l1 = verdict.rotations, True
+        if out.chosen == "robust" or refitted or l1 or out.relocalized:  # (the anchor may move)
             final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
             final[0] = np.eye(3)
         trusted = int(out.known.sum())
@@ -347,6 +357,8 @@ class RotationAverager:
                   f"edges outside, {trusted} odometry edges trusted, {out.relocalized} nodes "
                   f"relocalized, {out.runs_left_out} runs of loop closures left out")
         kept_solution = "dmf_refit" if out.chosen == "robust" and refitted else out.chosen
+        if l1:
+            kept_solution += "+l1"
         return ComponentSolution(final, inlier, best, costs, iterations, kept,
                                  out.noise.sigma_deg, kept_solution, out.untested,
                                  out.relocalized, trusted, pruned,
