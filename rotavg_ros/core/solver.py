@@ -340,7 +340,9 @@ class RotationAverager:
                 and redundancy(n, inlier) >= chain_like):
             verdict = choose_by_cross_validation(final, i[inlier], j[inlier], R[inlier],
                                                  w[inlier], seed=opt.runtime.seed)
-            self._say(f"cross-validation: {'L1' if verdict.l1_better else 'least squares'}"
+            self._say("cross-validation: no verdict (the kept solution is not least squares, "
+                      "or a fold splits the inliers)" if np.isnan(verdict.held_out_change)
+                      else f"cross-validation: {'L1' if verdict.l1_better else 'least squares'}"
                       f" (held-out change {verdict.held_out_change:+.3f})")
             if verdict.l1_better:  # (else the kept solution stands as it is)
                 final, l1 = verdict.rotations, True

@@ -40,12 +40,19 @@ L1_FLOOR = 0.3
 """``eps`` of the L1 reweighting, as a fraction of the least-squares median residual."""
 L1_STEPS = 20
 """Reweightings (one Gauss-Newton step each) of every L1 fit."""
+LEAST_SQUARES_TOLERANCE = 0.01
+"""The given solution stands for least squares where its weighted squared cost is within
+this fraction of the least-squares optimum's. Else it is some other estimator (a sparse
+DMF fit that reweighted its edges towards L1: 8.5-14.5% above the optimum on the regime
+benchmark's view graphs with 30-50% outliers, where it beat both least squares and the L1
+fit), which cross-validating least squares against L1 says nothing about. (The
+least-squares-like solutions there: within 0.01%.)"""
 
 
 @dataclass
 class L1Verdict:
     """The cross-validation's answer: ``rotations`` is the L1 solution where ``l1_better``,
-    else the least-squares one; ``held_out_change`` is the held-out sum of weighted squared
+    else the given one; ``held_out_change`` is the held-out sum of weighted squared
     residuals of L1 minus least squares, over least squares' in-sample sum (negative: L1
     predicts the held-out edges better); NaN where a fold would cut the graph apart."""
 
@@ -68,19 +75,22 @@ def choose_by_cross_validation(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     folds: int = FOLDS, seed: int = 0,
 ) -> L1Verdict:
-    """Least squares from ``rot`` on every given edge, or the L1 fit where ``folds``-fold
-    cross-validation prefers it (module docstring). The graph is taken as connected; where
-    leaving out a fold would split it (beyond nodes left without an edge, which keep their
-    rotation in the fold's fits), least squares stands (no verdict)."""
+    """The solution ``rot``, or the L1 fit of the given edges where ``rot`` is their
+    least-squares solution (:data:`LEAST_SQUARES_TOLERANCE`) and ``folds``-fold
+    cross-validation prefers L1 to least squares (module docstring). No verdict (``rot``
+    stands, ``held_out_change`` NaN) where ``rot`` is not least squares, or where leaving
+    out a fold would split the graph (beyond nodes left without an edge, which keep their
+    rotation in the fold's fits)."""
     ls = refine_least_squares(rot, i, j, R, w, iterations=20)
     r = residual_angles(ls, i, j, R)
     eps = L1_FLOOR * float(np.median(r))
     in_sample = float(np.sum(w * r ** 2))
+    given = float(np.sum(w * residual_angles(rot, i, j, R) ** 2))
     n = rot.shape[0]
     label = np.random.default_rng(seed).integers(0, folds, i.size)
-    if not eps > 0 or not all(_connected(n, i[label != k], j[label != k])
-                              for k in range(folds)):
-        return L1Verdict(ls, False, float("nan"))
+    if (not eps > 0 or given > (1.0 + LEAST_SQUARES_TOLERANCE) * in_sample
+            or not all(_connected(n, i[label != k], j[label != k]) for k in range(folds))):
+        return L1Verdict(rot, False, float("nan"))
     change = 0.0
     for k in range(folds):
         fit, held = label != k, label == k
@@ -92,7 +102,7 @@ def choose_by_cross_validation(
     change /= max(in_sample, 1e-300)
     if change < 0.0:
         return L1Verdict(l1_fit(ls, i, j, R, w, eps), True, change)
-    return L1Verdict(ls, False, change)
+    return L1Verdict(rot, False, change)
 
 
 def _connected(n: int, i: IntArray, j: IntArray) -> bool:
