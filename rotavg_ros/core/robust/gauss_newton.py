@@ -89,7 +89,7 @@ def laplacian_factor(n: int, i: IntArray, j: IntArray, w: FloatArray) -> Factor 
         a, b, wb = index[i][both], index[j][both], w[both]
         # Stored entries of the sparse Laplacian: the diagonal and each node pair both ways.
         pairs = np.unique(np.minimum(a, b) * size + np.maximum(a, b)).size
-        if size <= DENSE_ALWAYS or size + 2 * pairs > DENSE_FILL * size ** 2:
+        if _factor_densely(size, size + 2 * pairs):
             L: FloatArray = np.bincount(
                 np.concatenate([a * size + b, b * size + a]), np.concatenate([-wb, -wb]),
                 size * size).astype(np.float64, copy=False).reshape(size, size)
@@ -184,7 +184,7 @@ class Factor:
         self._lu = None
         self._matrix: Any = None  # conjugate gradients on this matrix
         size = nodes.size
-        if size <= DENSE_MAX and (L.nnz > DENSE_FILL * size ** 2 or size <= DENSE_ALWAYS):
+        if _factor_densely(size, L.nnz):
             self._dense = cho_factor(L.toarray(), lower=True, check_finite=False)
         elif WELL_CONNECTED.get() or L.nnz / size - 1.0 >= ITERATIVE_MIN_DEGREE:
             self._matrix = L
@@ -255,6 +255,13 @@ normal matrix itself was factored: 3,000 and 300 coordinates.)"""
 DENSE_FILL = 0.02
 DENSE_ALWAYS = 100
 """Free nodes up to which every Laplacian is solved densely (well under a millisecond)."""
+
+
+def _factor_densely(size: int, nnz: int) -> bool:
+    """Whether a Laplacian on ``size`` free nodes with ``nnz`` stored entries (its sparse
+    form's) is factored by dense Cholesky (:data:`DENSE_MAX`, :data:`DENSE_FILL`,
+    :data:`DENSE_ALWAYS`)."""
+    return size <= DENSE_MAX and (nnz > DENSE_FILL * size ** 2 or size <= DENSE_ALWAYS)
 ITERATIVE_MIN_DEGREE = 10.0
 """Above ``DENSE_MAX``: mean number of weighted edges per node from which the Laplacian is
 solved by Jacobi-preconditioned conjugate gradients instead of SuperLU. A graph this
