@@ -280,7 +280,7 @@ class VerifyOptions:
     stands."""
     l1_max_nodes: int = field(default=2000, metadata=_flat("l1_max_nodes"))
     """Largest graph that ``l1_by_cross_validation`` runs on: it costs about 200
-    Gauss-Newton steps (0.1-0.3 s on 125 nodes), each as costly as one of the
+    Gauss-Newton steps (0.1-0.5 s on 125 nodes), each as costly as one of the
     verification's on that graph."""
     refit_readmitted: bool = field(default=True, metadata=_flat("refit_readmitted"))
     """Dense mode: where the DMF solution is kept but more than a third of the edges the
