@@ -50,24 +50,39 @@ def residual_angles(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray) ->
     return np.linalg.norm(edge_residuals(rot, i, j, R), axis=-1)
 
 
+def _anchored_edges(n: int, i: IntArray, j: IntArray, w: FloatArray,
+                    ) -> tuple[FloatArray, IntArray, IntArray, IntArray, FloatArray]:
+    """``(weighted degrees (n,), free nodes, a, b, weights)``: the free nodes are those a
+    weighted edge reaches, but the anchor (node 0); ``a``, ``b`` are the rows (positions
+    in the free nodes) of the edges between two free nodes, with their weights."""
+    deg: FloatArray = (np.bincount(i, w, n) + np.bincount(j, w, n)).astype(np.float64, copy=False)
+    reached = deg > 0
+    reached[0] = False  # the anchor is fixed
+    nodes: IntArray = np.flatnonzero(reached).astype(np.int64, copy=False)
+    index = np.full(n, -1, dtype=np.int64)
+    index[nodes] = np.arange(nodes.size)
+    both = (index[i] >= 0) & (index[j] >= 0)
+    a: IntArray = index[i][both]
+    b: IntArray = index[j][both]
+    return deg, nodes, a, b, w[both]
+
+
+def _sparse_laplacian(deg: FloatArray, nodes: IntArray, a: IntArray, b: IntArray,
+                      w: FloatArray) -> Any:
+    """The Laplacian on the free nodes (CSC) from :func:`_anchored_edges`' pieces."""
+    diag = np.arange(nodes.size)
+    return coo_matrix((np.concatenate([deg[nodes] + 1e-12, -w, -w]),
+                       (np.concatenate([diag, a, b]), np.concatenate([diag, b, a]))),
+                      shape=(nodes.size, nodes.size)).tocsc()
+
+
 def anchored_laplacian(n: int, i: IntArray, j: IntArray, w: FloatArray,
                        ) -> tuple[Any, IntArray]:
     """``(L on the free nodes (CSC), free nodes)``: the weighted graph Laplacian, without
     the anchor (node 0) and the nodes no weighted edge reaches (+ 1e-12 on the diagonal: no
     exactly singular matrix)."""
-    deg = np.bincount(i, w, n) + np.bincount(j, w, n)
-    reached = deg > 0
-    reached[0] = False  # the anchor is fixed
-    nodes = np.flatnonzero(reached)
-    index = np.full(n, -1)
-    index[nodes] = np.arange(nodes.size)
-    both = (index[i] >= 0) & (index[j] >= 0)
-    a, b = index[i][both], index[j][both]
-    diag = np.arange(nodes.size)
-    L = coo_matrix((np.concatenate([deg[nodes] + 1e-12, -w[both], -w[both]]),
-                    (np.concatenate([diag, a, b]), np.concatenate([diag, b, a]))),
-                   shape=(nodes.size, nodes.size)).tocsc()
-    return L, nodes
+    deg, nodes, a, b, wb = _anchored_edges(n, i, j, w)
+    return _sparse_laplacian(deg, nodes, a, b, wb), nodes
 
 
 def laplacian_factor(n: int, i: IntArray, j: IntArray, w: FloatArray) -> Factor | None:
@@ -75,28 +90,21 @@ def laplacian_factor(n: int, i: IntArray, j: IntArray, w: FloatArray) -> Factor 
     factored densely, the dense matrix is summed directly (``np.bincount``) instead of
     through a sparse matrix: on a 125-node pose graph that assembly was a third of each
     Gauss-Newton step (the same matrix up to the order in which parallel edges add up)."""
-    deg = np.bincount(i, w, n) + np.bincount(j, w, n)
-    reached = deg > 0
-    reached[0] = False  # the anchor is fixed
-    nodes = np.flatnonzero(reached)
+    deg, nodes, a, b, wb = _anchored_edges(n, i, j, w)
     size = nodes.size
     if size == 0:
         return None
     if size <= DENSE_MAX:
-        index = np.full(n, -1)
-        index[nodes] = np.arange(size)
-        both = (index[i] >= 0) & (index[j] >= 0) & (i != j)
-        a, b, wb = index[i][both], index[j][both], w[both]
         # Stored entries of the sparse Laplacian: the diagonal and each node pair both ways.
-        pairs = np.unique(np.minimum(a, b) * size + np.maximum(a, b)).size
+        off = a != b
+        pairs = np.unique(np.minimum(a[off], b[off]) * size + np.maximum(a[off], b[off])).size
         if _factor_densely(size, size + 2 * pairs):
             L: FloatArray = np.bincount(
                 np.concatenate([a * size + b, b * size + a]), np.concatenate([-wb, -wb]),
                 size * size).astype(np.float64, copy=False).reshape(size, size)
             L[np.arange(size), np.arange(size)] += deg[nodes] + 1e-12
             return Factor.from_dense(L, nodes)
-    L, nodes = anchored_laplacian(n, i, j, w)
-    return Factor(L, nodes, n)
+    return Factor(_sparse_laplacian(deg, nodes, a, b, wb), nodes, n)
 
 
 class EliminationOrder:
