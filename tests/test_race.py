@@ -101,7 +101,10 @@ def _solve(g: ViewGraph, **flat: Any) -> SolveResult:
     return RotationAverager(options).solve(g)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+# Seeds where depth 8 is far behind at the checkpoint (cost 3.9x and 1.9x depth 2's against
+# the ratio's 1.3x): from a near-zero start its progress by then varies with the CPU's
+# rounding (seed 1: 1.22x on an AVX-512 machine, stopped on others).
+@pytest.mark.parametrize("seed", [0, 5])
 def test_the_race_stops_a_loser_and_changes_nothing_else(seed: int) -> None:
     g = _graph(24, seed)
     full = _solve(g, prune_ratio=None, threads=2)

@@ -25,6 +25,8 @@ def test_replay_matches_golden_orientations(bag: str, tmp_path: Path) -> None:
     ids, rots = read_g2o_vertices(out)
     gold_ids, gold_rots = read_g2o_vertices(GOLDEN / f"{bag}.g2o")
     assert list(ids) == list(gold_ids)
-    # Same code, same seed: equal up to float rounding of another CPU's vector units.
+    # Same code, same seed: equal up to float rounding of another CPU's vector units. That
+    # rounding can tip a discrete step of the fit: the same commit gave smallgrid3d_odom
+    # 3.6e-4 deg apart on an AVX-512 machine and on CI's; code changes moved it 2.5e-3 deg.
     diff_deg = np.degrees(geodesic_distance(np.asarray(rots), np.asarray(gold_rots)))
-    assert float(diff_deg.max()) < 1e-4, f"max difference {diff_deg.max():.2e} deg"
+    assert float(diff_deg.max()) < 1e-3, f"max difference {diff_deg.max():.2e} deg"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from typing import Any
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -23,7 +24,11 @@ from rotavg_ros.core.robust.gauss_newton import (
     residual_angles,
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
-from rotavg_ros.core.robust.l1_choice import choose_by_cross_validation
+from rotavg_ros.core.robust.l1_choice import (
+    EARLY_STOP_QUANTILES,
+    choose_by_cross_validation,
+    decided_early,
+)
 from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, fit_noise, redundancy, residual_shape
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.robust.verify import (
@@ -752,6 +757,38 @@ def test_cross_validation_picks_l1_for_peaked_noise_and_least_squares_for_gaussi
     other = choose_by_cross_validation(off, i, j, R, w)
     assert not other.l1_better and math.isnan(other.held_out_change)
     assert other.rotations is off
+
+
+def test_early_stop_quantiles_are_students_t_at_99_5_percent() -> None:
+    from scipy import stats
+
+    expected = [stats.t.ppf(0.995, k - 1) for k in range(3, 3 + len(EARLY_STOP_QUANTILES))]
+    assert np.allclose(EARLY_STOP_QUANTILES, expected, atol=1e-3)
+
+
+def test_cross_validation_stops_early_only_on_a_clear_sign() -> None:
+    assert not decided_early([-0.03, -0.03])  # never before three folds
+    assert decided_early([-0.030, -0.031, -0.029])  # t = -52
+    assert not decided_early([-0.030, -0.010, -0.050])  # t = -2.6 < 9.9
+    assert not decided_early([-0.03, -0.01, -0.05, -0.02, -0.04])  # t = -4.2 < 4.6
+    assert decided_early([0.03, 0.01, 0.05, 0.02, 0.04, 0.03])  # t = 5.2 > 4.0
+    assert not decided_early([0.03, -0.01, -0.05, -0.02, -0.04])  # t = -1.3
+    assert not decided_early([-0.02] * 4)  # no spread: no t, all folds run
+
+
+@pytest.mark.parametrize("peaked", [True, False])
+def test_cross_validation_stopped_early_keeps_the_verdict_of_all_folds(peaked: bool) -> None:
+    rng = np.random.default_rng(3)
+    i, j, R, truth = _noisy_graph(80, peaked, rng)
+    w = np.ones(i.size)
+    ls = gauss_newton.refine_least_squares(truth, i, j, R, w, iterations=30)
+    verdict = choose_by_cross_validation(ls, i, j, R, w)
+    with mock.patch("rotavg_ros.core.robust.l1_choice.decided_early", return_value=False):
+        full = choose_by_cross_validation(ls, i, j, R, w)
+    assert full.folds_run == 10
+    assert 3 <= verdict.folds_run <= 10
+    assert verdict.l1_better == full.l1_better == peaked
+    assert np.allclose(verdict.rotations, full.rotations)
 
 
 def test_cross_validation_gives_no_verdict_where_a_fold_splits_the_graph() -> None:

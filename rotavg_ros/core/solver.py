@@ -343,7 +343,8 @@ class RotationAverager:
             self._say("cross-validation: no verdict (the kept solution is not least squares, "
                       "or a fold splits the inliers)" if np.isnan(verdict.held_out_change)
                       else f"cross-validation: {'L1' if verdict.l1_better else 'least squares'}"
-                      f" (held-out change {verdict.held_out_change:+.3f})")
+                      f" (held-out change {verdict.held_out_change:+.3f}, "
+                      f"{verdict.folds_run} folds)")
             if verdict.l1_better:  # (else the kept solution stands as it is)
                 final, l1 = verdict.rotations, True
         if out.chosen == "robust" or refitted or l1 or out.relocalized:  # (the anchor may move)
