@@ -45,7 +45,7 @@ of the ``k`` per-fold differences (mean over standard error), exceeds entry ``k 
 one-sided 99.5% quantile of Student's t with ``k - 1`` degrees of freedom. On the regime
 benchmark's graphs that reach the cross-validation (seeds 0, 5, 6, 7 folded and 0 tangent,
 every case with a verdict), no early verdict had another sign than the sum over all ten
-folds; on sphere2500's graphs it comes after 3-5 folds, a third of the cost."""
+folds; on sphere2500's graphs it comes after 3-8 folds (3 on the real one)."""
 L1_FLOOR = 0.3
 """``eps`` of the L1 reweighting, as a fraction of the least-squares median residual."""
 L1_STEPS = 20
