@@ -42,7 +42,8 @@ FOLDS = 10
 EARLY_STOP_QUANTILES = (9.925, 5.841, 4.604, 4.032, 3.707, 3.499, 3.355, 3.250)
 """After ``k`` = 3, 4, ... folds, the verdict is taken early where ``|t|``, the t statistic
 of the ``k`` per-fold differences (mean over standard error), exceeds entry ``k - 3``: the
-one-sided 99.5% quantile of Student's t with ``k - 1`` degrees of freedom. On the regime
+one-sided 99.5% quantile of Student's t with ``k - 1`` degrees of freedom (written out:
+importing ``scipy.stats`` costs 0.3-0.4 s; a test checks them against it). On the regime
 benchmark's graphs that reach the cross-validation (seeds 0, 5, 6, 7 folded and 0 tangent,
 every case with a verdict), no early verdict had another sign than the sum over all ten
 folds; on sphere2500's graphs it comes after 3-8 folds (3 on the real one)."""
