@@ -42,6 +42,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     refine_least_squares,
     residual_angles,
 )
+from rotavg_ros.core.robust.l1_choice import held_out_difference
 from rotavg_ros.core.robust.noise import residual_shape
 from rotavg_ros.core.solver import RotationAverager
 from rotavg_ros.core.types import FloatArray, IntArray
@@ -66,18 +67,12 @@ def cross_validation(start: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
                      w: FloatArray, eps: float, folds: IntArray) -> float | None:
     """Held-out ``sum w (r_L1^2 - r_LS^2)`` over the folds (negative: L1 predicts better);
     None where a fold leaves the graph in pieces (a singular normal matrix)."""
-    n_folds = int(folds.max()) + 1
     total = 0.0
-    for k in range(n_folds):
-        fit, held = folds != k, folds == k
-        try:
-            ls = refine_least_squares(start, i[fit], j[fit], R[fit], w[fit], iterations=20)
-            l1 = irls(start, i[fit], j[fit], R[fit], w[fit], 1.0, eps)
+    for k in range(int(folds.max()) + 1):
+        try:  # the solver's fold (rotavg_ros.core.robust.l1_choice), on these fold labels
+            total += held_out_difference(start, i, j, R, w, eps, folds == k)
         except RuntimeError:  # SuperLU: exactly singular
             return None
-        r_ls = residual_angles(ls, i[held], j[held], R[held])
-        r_l1 = residual_angles(l1, i[held], j[held], R[held])
-        total += float(np.sum(w[held] * (r_l1 ** 2 - r_ls ** 2)))
     return total
 
 

@@ -35,7 +35,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     refine_least_squares,
     residual_angles,
 )
-from rotavg_ros.core.types import FloatArray, IntArray
+from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 FOLDS = 10
 """Folds of the cross-validation (random, each edge in one)."""
@@ -107,18 +107,25 @@ def choose_by_cross_validation(
         return L1Verdict(rot, False, float("nan"))
     differences: list[float] = []
     for k in range(folds):
-        fit, held = label != k, label == k
-        ls_k = refine_least_squares(ls, i[fit], j[fit], R[fit], w[fit], iterations=20)
-        l1_k = l1_fit(ls, i[fit], j[fit], R[fit], w[fit], eps)
-        differences.append(float(np.sum(
-            w[held] * (residual_angles(l1_k, i[held], j[held], R[held]) ** 2
-                       - residual_angles(ls_k, i[held], j[held], R[held]) ** 2))))
+        differences.append(held_out_difference(ls, i, j, R, w, eps, label == k))
         if decided_early(differences):
             break
     change = sum(differences) * folds / len(differences) / max(in_sample, 1e-300)
     if change < 0.0:
         return L1Verdict(l1_fit(ls, i, j, R, w, eps), True, change, len(differences))
     return L1Verdict(rot, False, change, len(differences))
+
+
+def held_out_difference(ls: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
+                        w: FloatArray, eps: float, held: BoolArray) -> float:
+    """One fold: least squares and the L1 fit (floor ``eps``) of the edges not ``held``,
+    both from ``ls``; the ``held`` edges' ``sum w (r_L1^2 - r_LS^2)`` (negative: L1
+    predicts them better)."""
+    fit = ~held
+    ls_k = refine_least_squares(ls, i[fit], j[fit], R[fit], w[fit], iterations=20)
+    l1_k = l1_fit(ls, i[fit], j[fit], R[fit], w[fit], eps)
+    return float(np.sum(w[held] * (residual_angles(l1_k, i[held], j[held], R[held]) ** 2
+                                   - residual_angles(ls_k, i[held], j[held], R[held]) ** 2)))
 
 
 def decided_early(differences: list[float]) -> bool:
