@@ -131,26 +131,44 @@ class DenseResiduals:
         T[self.ti, self.tj] = Rt
         T[self.tj, self.ti] = Rt.transpose(1, 2)
         T[self.diag, self.diag] = torch.eye(3, dtype=dt, device=dev)
-        self.T = T.permute(0, 2, 1, 3).reshape(3 * n, 3 * n)  # [3a + r, 3b + c]
-        self.W = torch.zeros_like(self.T)
+        self.neg_T = T.permute(0, 2, 1, 3).reshape(3 * n, 3 * n).neg_()  # [3a + r, 3b + c]
+        """``-T``: ``G - T`` is then one ``addmm``."""
+        self.W = torch.zeros_like(self.neg_T)
         self.weights = weights
         self.diagonal_weight = diagonal_weight
-        self.D = torch.empty_like(self.T)
-        self.S = torch.empty_like(self.T)
+        self.D = torch.empty_like(self.neg_T)
+        """``G - T`` or, after a step, ``S``: one 3N x 3N buffer kept across steps."""
+        self._holds_residual = False
+        self._h_t = torch.zeros(3, 3 * n, dtype=dt, device=dev)
+        """``H^T`` at the last :meth:`gradient` call, to form ``G - T`` again on demand."""
         self.reweighted()
 
     def gradient(self, h_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        # Into buffers kept across steps: a fresh 3N x 3N tensor per step costs page faults.
-        torch.mm(h_t.T, h_t, out=self.D).sub_(self.T)
-        torch.sign(self.D, out=self.S).mul_(self.W)
-        return nodes_from_h_t(h_t), torch.mm(h_t, self.S)  # (S H)^T = H^T S
+        # In place in one buffer kept across steps: a fresh 3N x 3N tensor per step costs
+        # page faults, and a second one its memory traffic (Ellis Island: 557 -> 418 us
+        # per call on one thread, the same values bit for bit). The residual the loss and
+        # the edge norms need is formed again when they are asked for (every reweighting).
+        # Not ``copysign(W, G - T)``: one pass fewer, but +-w_ij, not 0, where an L1 fit
+        # has made a residual exactly zero (Ellis Island's median 0.389 -> 0.409 deg).
+        self._h_t.copy_(h_t)
+        torch.addmm(self.neg_T, h_t.T, h_t, out=self.D).sign_().mul_(self.W)
+        self._holds_residual = False
+        return nodes_from_h_t(h_t), torch.mm(h_t, self.D)  # (S H)^T = H^T S
+
+    def _residual(self) -> torch.Tensor:
+        """``G - T`` at the last :meth:`gradient` call."""
+        if not self._holds_residual:
+            torch.addmm(self.neg_T, self._h_t.T, self._h_t, out=self.D)
+            self._holds_residual = True
+        return self.D
 
     def edge_norms(self) -> torch.Tensor:
         n = self.diag.numel()
-        return self.D.view(n, 3, n, 3).pow(2).sum(dim=(1, 3))[self.ti, self.tj].sqrt()
+        D = self._residual()
+        return D.view(n, 3, n, 3).pow(2).sum(dim=(1, 3))[self.ti, self.tj].sqrt()
 
     def loss(self) -> float:
-        return 0.5 * float((self.W * self.D.abs()).sum())
+        return 0.5 * float((self.W * self._residual().abs()).sum())
 
     def reweighted(self) -> None:
         n = self.diag.numel()
