@@ -74,7 +74,7 @@ class RegimeCase:
     gt: FloatArray
     """(N, 3, 3) world-to-node ground-truth rotations (or certified reference)."""
     weight: FloatArray | None = None
-    """Edge information weights (g2o data only); None = unweighted."""
+    """Edge information weights (g2o data, :func:`weighted_case`); None = unweighted."""
     inlier: BoolArray | None = None
     """True for the edges that are not deliberately false; None when unknown (real data:
     no oracle row)."""
@@ -403,6 +403,31 @@ def planar_case(name: str, base: RegimeCase, *, odo_noise_deg: float,
     return RegimeCase(name, base.family, base.num_nodes, i, j,
                       rotation_about_axis(z, delta), gt, None, base.inlier, noise, desc,
                       max(noise, 1.0))
+
+
+def weighted_case(name: str, base: RegimeCase, *, odo_noise_deg: float,
+                  loop_noise_deg: float, seed: int = 0,
+                  noise_model: str = "folded") -> RegimeCase:
+    """``base``'s edges, truth and false edges, measured as a SLAM front end reports them:
+    true odometry edges (``|i - j| = 1``) drawn again at ``odo_noise_deg``, true loop
+    closures at ``loop_noise_deg``, and every edge weighted by its information
+    ``1 / sigma^2`` (radians; a false closure carries a loop closure's weight, as its front
+    end would report it). What this tests: weights that differ by ``(loop / odo)^2``
+    between edges, which the noise scale, the thresholds and the choices must read as
+    standardized residuals."""
+    rng = rng_for(name, seed)
+    inlier = np.ones(base.num_edges, bool) if base.inlier is None else base.inlier
+    odo = base.odometry
+    sigma = np.where(odo, odo_noise_deg, loop_noise_deg)
+    R = base.R.copy()
+    for mask, noise in ((odo & inlier, odo_noise_deg), (~odo & inlier, loop_noise_deg)):
+        R[mask] = perturb(relative(base.gt, base.i[mask], base.j[mask]), noise, rng,
+                          noise_model)
+    desc = (f"weighted: {base.description or base.name}, odometry {odo_noise_deg:g} deg, "
+            f"loop closures {loop_noise_deg:g} deg, weights 1 / sigma^2")
+    return RegimeCase(name, base.family, base.num_nodes, base.i, base.j, R, base.gt,
+                      1.0 / np.radians(sigma) ** 2, base.inlier,
+                      max(odo_noise_deg, loop_noise_deg), desc, max(loop_noise_deg, 1.0))
 
 
 # ------------------------------------------------------- chains in pieces, revisited routes

@@ -1,14 +1,16 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Twenty-three cases outside the record suite of :mod:`benchmarks.regimes`: fifteen drawn with
+Twenty-nine cases outside the record suite of :mod:`benchmarks.regimes`: fifteen drawn with
 the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges),
 five graphs of kinds the suite has none of: chains in pieces that only loop closures
 join (two or three sessions; a chain with dropped odometry) and a route driven three times,
-whose true closures come in runs; and three planar robots (every rotation about z, noise
+whose true closures come in runs; three planar robots (every rotation about z, noise
 and false closures in heading only; on the chain, false closures from 10 deg off) on the
-edges of suite cases. They look
+edges of suite cases; and six weighted graphs, as a SLAM front end reports them (odometry
+at 0.5 deg, loop closures at 3 deg, each edge weighted by its information ``1 / sigma^2``;
+:func:`~benchmarks.regime_cases.weighted_case`) on suite topologies with false closures. They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
 ``paper`` profile (ours, the oracle, every installed peer) as the suite does
@@ -41,6 +43,7 @@ from benchmarks.regime_cases import (
     dense_case,
     pieces_case,
     planar_case,
+    weighted_case,
     revisit_case,
     slam_case,
 )
@@ -75,6 +78,10 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                **extra: Any) -> Callable[[], RegimeCase]:
         return lambda: planar_case(name, base(), odo_noise_deg=odo, loop_noise_deg=loop,
                                    seed=seed, **extra)
+
+    def weighted(name: str, base: Callable[[], RegimeCase]) -> Callable[[], RegimeCase]:
+        return lambda: weighted_case(name, base(), odo_noise_deg=0.5, loop_noise_deg=3.0,
+                                     seed=seed, noise_model=model)
 
     return [
         slam("stress/torus3D/noise5", "torus3D", noise_deg=5.0),
@@ -113,6 +120,18 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                1.0, 1.0),
         planar("stress/planar/smallGrid3D/rand10",
                slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10), 1.0, 1.0),
+        weighted("stress/weighted/smallGrid3D/rand10",
+                 slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10)),
+        weighted("stress/weighted/parking-garage/rand10",
+                 slam("slam/parking-garage/rand10", "parking-garage", random_false=0.10)),
+        weighted("stress/weighted/parking-garage/grouped",
+                 slam("slam/parking-garage/grouped", "parking-garage", groups=10)),
+        weighted("stress/weighted/sphere2500/rand10",
+                 slam("slam/sphere2500/rand10", "sphere2500", random_false=0.10)),
+        weighted("stress/weighted/torus3D/rand10",
+                 slam("slam/torus3D/rand10", "torus3D", random_false=0.10)),
+        weighted("stress/weighted/chain/1000/rand30",
+                 chain("chain/1000/rand30", 1000, closures=36, false_random=0.30)),
     ]
 
 

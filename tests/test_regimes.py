@@ -82,6 +82,26 @@ def test_seed_and_noise_model_draw_the_same_regime_afresh() -> None:
     assert list(rc.all_cases(1, "tangent")) == list(rc.all_cases())
 
 
+def test_weighted_case_measures_odometry_and_closures_at_their_own_noise() -> None:
+    """A front end's report: true odometry at its own noise, true closures at theirs, the
+    false closures as they were, and each edge weighted by ``1 / sigma^2``."""
+    base = rc.chain_case("test/chain300", 300, closures=30, false_random=0.2,
+                         odo_noise_deg=0.0, loop_noise_deg=0.0)
+    case = rc.weighted_case("test/weighted", base, odo_noise_deg=0.5, loop_noise_deg=3.0)
+    assert case.inlier is not None and base.inlier is not None
+    assert np.array_equal(case.gt, base.gt) and np.array_equal(case.inlier, base.inlier)
+    odo, true = case.odometry, case.inlier
+    assert case.weight is not None
+    np.testing.assert_allclose(case.weight[odo], 1.0 / np.radians(0.5) ** 2)
+    np.testing.assert_allclose(case.weight[~odo], 1.0 / np.radians(3.0) ** 2)
+    assert np.array_equal(case.R[~true], base.R[~true])
+    err = _angles_deg(case.R, rc.relative(case.gt, case.i, case.j))
+    rms = [float(np.sqrt(np.mean(err[m] ** 2))) for m in (odo & true, ~odo & true)]
+    assert 0.4 < rms[0] < 0.6 and 2.0 < rms[1] < 4.0  # folded noise: RMS angle sigma
+    again = rc.weighted_case("test/weighted", base, odo_noise_deg=0.5, loop_noise_deg=3.0)
+    assert np.array_equal(again.R, case.R)
+
+
 def test_chain_has_no_triangles_and_odometry() -> None:
     case = _tiny_chain()
     assert rc.triangle_count(case.num_nodes, case.i, case.j) == 0
