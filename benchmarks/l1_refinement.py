@@ -42,7 +42,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     refine_least_squares,
     residual_angles,
 )
-from rotavg_ros.core.robust.l1_choice import held_out_difference
+from rotavg_ros.core.robust.l1_choice import L1_FLOOR, held_out_difference, l1_fit
 from rotavg_ros.core.robust.noise import residual_shape
 from rotavg_ros.core.solver import RotationAverager
 from rotavg_ros.core.types import FloatArray, IntArray
@@ -156,10 +156,10 @@ def _cross_validate(shared: Path, args: argparse.Namespace) -> int:
         for name in args.cases.split(","):
             case = builders[name](shared)
             start, i, j, R, w, r = _solved(case, shared)
-            eps = 0.3 * float(np.median(r))
+            eps = L1_FLOOR * float(np.median(np.sqrt(w) * r))  # as the solver's choice
             truth = dict(enumerate(case.gt))
             ls = refine_least_squares(start, i, j, R, w, iterations=20)
-            l1 = irls(ls, i, j, R, w, 1.0, eps)
+            l1 = l1_fit(ls, i, j, R, w, eps)
             m_ls = evaluate(dict(enumerate(ls)), truth).median_deg
             m_l1 = evaluate(dict(enumerate(l1)), truth).median_deg
             rand = np.random.default_rng(1).integers(0, 10, i.size)
