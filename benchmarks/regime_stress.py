@@ -43,9 +43,9 @@ from benchmarks.regime_cases import (
     dense_case,
     pieces_case,
     planar_case,
-    weighted_case,
     revisit_case,
     slam_case,
+    weighted_case,
 )
 from benchmarks.regimes import (
     OURS_NOFILTER,

@@ -19,8 +19,8 @@ scale ``1 / sqrt(w_e)``, as the verification's costs count it (with information 
 ``w_e = 1 / sigma_e^2`` that differ between edges, ``sum_e w_e |e_e|`` would trust the
 precise edges ``1 / sigma_e`` times too much). It is iteratively reweighted least squares,
 ``w_e / max(sqrt(w_e) |e_e|, eps)`` with ``eps`` a fraction of the median standardized
-residual, one Gauss-Newton step per reweighting. Conventions as in :mod:`.gauss_newton`: world-to-node
-rotations, ``R_ij ~= R_i R_j^T``, node 0 fixed.
+residual, one Gauss-Newton step per reweighting. Conventions as in :mod:`.gauss_newton`:
+world-to-node rotations, ``R_ij ~= R_i R_j^T``, node 0 fixed.
 """
 
 from __future__ import annotations
