@@ -1,16 +1,17 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Twenty-nine cases outside the record suite of :mod:`benchmarks.regimes`: fifteen drawn with
+Thirty-one cases outside the record suite of :mod:`benchmarks.regimes`: fifteen drawn with
 the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges),
 five graphs of kinds the suite has none of: chains in pieces that only loop closures
 join (two or three sessions; a chain with dropped odometry) and a route driven three times,
-whose true closures come in runs; three planar robots (every rotation about z, noise
-and false closures in heading only; on the chain, false closures from 10 deg off) on the
-edges of suite cases; and six weighted graphs, as a SLAM front end reports them (odometry
-at 0.5 deg, loop closures at 3 deg, each edge weighted by its information ``1 / sigma^2``;
-:func:`~benchmarks.regime_cases.weighted_case`) on suite topologies with false closures. They look
+whose true closures come in runs; five planar robots (every rotation about z, noise
+and false closures in heading only; on the chain, false closures from 10 deg off; two at
+10 and 20 deg of heading noise) on the edges of suite cases; and six weighted graphs, as a
+SLAM front end reports them (odometry at 0.5 deg, loop closures at 3 deg, each edge
+weighted by its information ``1 / sigma^2``; :func:`~benchmarks.regime_cases.weighted_case`)
+on suite topologies with false closures. They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
 ``paper`` profile (ours, the oracle, every installed peer) as the suite does
@@ -120,6 +121,11 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                1.0, 1.0),
         planar("stress/planar/smallGrid3D/rand10",
                slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10), 1.0, 1.0),
+        planar("stress/planar/sphere2500/noise20",
+               slam("slam/sphere2500/noise1", "sphere2500"), 20.0, 20.0),
+        planar("stress/planar/parking-garage/noise10+rand10",
+               slam("slam/parking-garage/rand10", "parking-garage", random_false=0.10),
+               10.0, 10.0),
         weighted("stress/weighted/smallGrid3D/rand10",
                  slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10)),
         weighted("stress/weighted/parking-garage/rand10",
