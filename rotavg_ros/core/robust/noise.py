@@ -8,7 +8,7 @@ Residual angles ``r`` (radians) of edges against a solution are modelled as a mi
   headings; :func:`noise_axes`) the noise has one axis, and ``r`` is half-normal (chi, 1
   degree of freedom). The solver sets :data:`NOISE_AXES` per component;
 * outliers: rotations uniform on SO(3), whose angle has density ``(1 - cos r) / pi`` on
-  ``[0, pi]``.
+  ``[0, pi]``; on a planar problem headings uniform on the circle, density ``1 / pi``.
 
 An EM fit gives ``s`` and the inlier fraction; the inlier threshold is the angle where an
 edge becomes more likely an outlier than an inlier. With no outliers the threshold moves far
@@ -77,8 +77,12 @@ def _log_inlier(r: FloatArray, s: float, axes: int) -> FloatArray:
     return 0.5 * math.log(2.0 / math.pi) - math.log(s) - r * r / (2.0 * s * s)
 
 
-def _log_uniform(r: FloatArray) -> FloatArray:
-    return np.log(np.maximum(1.0 - np.cos(r), 1e-300) / math.pi)
+def _log_uniform(r: FloatArray, axes: int = 3) -> FloatArray:
+    """Log density of an outlier's angle: a rotation uniform on SO(3) (3 axes), or a heading
+    uniform on the circle (1 axis: a planar problem's false measurement)."""
+    if axes == 3:
+        return np.log(np.maximum(1.0 - np.cos(r), 1e-300) / math.pi)
+    return np.full(np.shape(r), -math.log(math.pi))
 
 
 def fit_noise(
@@ -105,7 +109,7 @@ def fit_noise(
         r = np.minimum(r, math.pi)
     s = max(float(np.median(r)) / _MEDIAN_OF_CHI[axes], min_sigma)
     p = 0.8
-    log_out = np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi))
+    log_out = np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi), axes)
     for _ in range(iterations):
         a = math.log(p) + _log_inlier(r, s, axes)
         b = math.log(1.0 - p) + log_out
@@ -133,7 +137,8 @@ def is_inlier(r: FloatArray, model: NoiseModel, scale: FloatArray | None = None,
     if p >= 1.0:
         return r <= max_threshold
     log_in = math.log(p) + _log_inlier(r, model.sigma, model.axes)
-    log_out = math.log(1.0 - p) + np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi))
+    log_out = math.log(1.0 - p) + np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi),
+                                                            model.axes)
     return (log_in >= log_out) & (r <= max_threshold)
 
 
@@ -142,7 +147,8 @@ def log_likelihood(r: FloatArray, model: NoiseModel) -> float:
     r = np.clip(np.asarray(r, dtype=np.float64), 1e-9, math.pi)
     p = model.inlier_fraction
     a = math.log(p) + _log_inlier(r, model.sigma, model.axes)
-    b = math.log(1.0 - p) + _log_uniform(r) if p < 1.0 else np.full(r.shape, -np.inf)
+    b = (math.log(1.0 - p) + _log_uniform(r, model.axes) if p < 1.0
+         else np.full(r.shape, -np.inf))
     return float(np.sum(np.logaddexp(a, b)))
 
 
@@ -150,7 +156,7 @@ def _crossing(s: float, p: float, cap: float, axes: int = 3) -> float:
     """Smallest angle above the inlier mode where outliers become more likely; <= cap."""
     mode = s * math.sqrt(2.0) if axes == 3 else s  # (half-normal: from one sigma on)
     grid = np.linspace(mode, max(cap, mode), 2000)
-    more_out = (math.log(1.0 - p) + _log_uniform(grid)
+    more_out = (math.log(1.0 - p) + _log_uniform(grid, axes)
                 > math.log(p) + _log_inlier(grid, s, axes))
     hit = np.flatnonzero(more_out)
     return min(float(grid[hit[0]]), cap) if hit.size else cap
