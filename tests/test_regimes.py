@@ -373,28 +373,6 @@ def test_default_profile_reads_information_weights_on_a_front_ends_pose_graph(
     assert ours < 1.1 * evaluate(dict(enumerate(ls)), truth).median_deg
 
 
-def test_default_profile_reads_heading_noise_on_a_planar_pose_graph(shared_dir: Path) -> None:
-    """sphere2500's edges on a planar robot at 20 deg of heading noise, no false edge (the
-    stress variant, seed 0). The verification modelled the noise on three axes, read half
-    the scale, cut 469 true edges and ended at 67.9 deg median; on one axis it keeps the
-    least-squares answer (11.8 deg, GNC-TLS 11.7)."""
-    from rotavg_ros.core.chordal_init import chordal_rotations
-    from rotavg_ros.core.metrics import evaluate
-    from rotavg_ros.core.options import SolverOptions
-    from rotavg_ros.core.robust.gauss_newton import refine_least_squares
-    from rotavg_ros.core.solver import average_rotations
-
-    base = rc.slam_case("slam/sphere2500/noise1", shared_dir, "sphere2500")
-    case = rc.planar_case("stress/planar/sphere2500/noise20", base, odo_noise_deg=20.0,
-                          loop_noise_deg=20.0)
-    n, i, j, R, w = case.num_nodes, case.i, case.j, case.R, np.ones(case.num_edges)
-    solved = average_rotations(n, i, j, R, w, SolverOptions.for_profile("default"))
-    ls = refine_least_squares(chordal_rotations(n, i, j, R, w), i, j, R, w, iterations=50)
-    truth = dict(enumerate(case.gt))
-    ours = evaluate(dict(enumerate(solved.rotations)), truth).median_deg
-    assert ours < 1.05 * evaluate(dict(enumerate(ls)), truth).median_deg
-
-
 def test_choice_prefers_least_squares_where_the_residuals_look_gaussian() -> None:
     # A dense graph, 10% outliers, 2 deg noise. Gaussian tangent noise: the re-solve's
     # residuals look Gaussian, so its least-squares solution is kept (without that test the

@@ -30,15 +30,7 @@ from rotavg_ros.core.robust.l1_choice import (
     decided_early,
     l1_fit,
 )
-from rotavg_ros.core.robust.noise import (
-    GAUSSIAN_SHAPE,
-    NOISE_AXES,
-    fit_noise,
-    looks_gaussian,
-    noise_axes,
-    redundancy,
-    residual_shape,
-)
+from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, fit_noise, redundancy, residual_shape
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.robust.verify import (
     chain_tree,
@@ -797,42 +789,6 @@ def test_l1_fit_weighs_each_residual_by_its_own_noise_scale() -> None:
     # Unit weights scaled by a constant: the same fit (only the floor's units change).
     same = l1_fit(ls, i, j, R, np.full(i.size, 4.0), 2.0 * eps)
     np.testing.assert_allclose(same, l1_fit(ls, i, j, R, np.ones(i.size), eps), atol=1e-9)
-
-
-def test_noise_axes_tell_a_planar_problem_apart() -> None:
-    """One axis where every measurement turns about one common axis (a 2D front end's
-    headings), three as soon as the rotations leave it, even by 0.1 deg."""
-    rng = np.random.default_rng(5)
-    headings = rng.uniform(-math.pi, math.pi, 200)
-    planar = exp_map(np.outer(headings, [0.0, 0.0, 1.0]))
-    assert noise_axes(planar) == 1
-    tilt = exp_map(rng.normal(0.0, math.radians(0.1), (200, 3)))
-    assert noise_axes(np.einsum("eab,ebc->eac", tilt, planar)) == 3
-    assert noise_axes(np.tile(np.eye(3), (5, 1, 1))) == 3  # no rotation: no axis
-
-
-def test_noise_fit_on_one_axis_reads_heading_noise() -> None:
-    """Heading noise of 20 deg (residual angles half-normal) with 5% outliers: on one axis
-    the fit finds the 20 deg, keeps the true edges and reads the residuals as Gaussian. The
-    three-axis (Maxwell) model reads about half the scale and the residuals as peaked: the
-    re-solve's thresholds (multiples of the scale) then cut true edges, and the choices
-    leave least squares (on a planar sphere2500 at 20 deg: 68 deg median against least
-    squares' 11.8)."""
-    rng = np.random.default_rng(6)
-    true = np.abs(rng.normal(0.0, math.radians(20.0), 4000))
-    false = np.arccos(1.0 - 2.0 * rng.random(200))  # roughly uniform angles
-    r = np.concatenate([true, false])
-    token = NOISE_AXES.set(1)
-    try:
-        planar = fit_noise(r)
-        assert planar.axes == 1 and abs(planar.sigma_deg - 20.0) < 2.0
-        assert np.mean(true <= planar.threshold) > 0.97
-        assert looks_gaussian(true, np.ones(true.size, bool))
-    finally:
-        NOISE_AXES.reset(token)
-    spatial = fit_noise(r)
-    assert spatial.axes == 3 and spatial.sigma_deg < 12.0
-    assert not looks_gaussian(true, np.ones(true.size, bool))
 
 
 def test_early_stop_quantiles_are_students_t_at_99_5_percent() -> None:

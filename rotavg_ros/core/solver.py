@@ -35,7 +35,7 @@ from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.l1_choice import choose_by_cross_validation
-from rotavg_ros.core.robust.noise import NOISE_AXES, looks_gaussian, noise_axes, redundancy
+from rotavg_ros.core.robust.noise import looks_gaussian, redundancy
 from rotavg_ros.core.robust.verify import (
     RobustSolve,
     choose,
@@ -214,20 +214,8 @@ class RotationAverager:
     ) -> ComponentSolution:
         """Solve one connected graph in local indices; node 0 is the anchor.
 
-        ``initial`` (n, 3, 3) world-to-node rotations with NaN rows for unknown nodes. The
-        verification's noise model has one axis where every measurement turns about one
-        common axis (a planar problem, :func:`~.robust.noise.noise_axes`), else three.
+        ``initial`` (n, 3, 3) world-to-node rotations with NaN rows for unknown nodes.
         """
-        token = NOISE_AXES.set(noise_axes(R))
-        try:
-            return self._solve_component(n, i, j, R, w, initial, initial_depth)
-        finally:
-            NOISE_AXES.reset(token)
-
-    def _solve_component(
-        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-        initial: FloatArray | None, initial_depth: int | None,
-    ) -> ComponentSolution:
         opt = self.options
         w = w / np.mean(w)
         tree_rot: FloatArray | None = None

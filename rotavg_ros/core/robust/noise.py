@@ -4,11 +4,8 @@ Residual angles ``r`` (radians) of edges against a solution are modelled as a mi
 
 * inliers: isotropic Gaussian noise of standard deviation ``s`` per axis of the rotation
   vector, so ``r`` follows a Maxwell (chi, 3 degrees of freedom) distribution of scale ``s``;
-  on a planar problem (every measurement a rotation about one common axis: a 2D front end's
-  headings; :func:`noise_axes`) the noise has one axis, and ``r`` is half-normal (chi, 1
-  degree of freedom). The solver sets :data:`NOISE_AXES` per component;
 * outliers: rotations uniform on SO(3), whose angle has density ``(1 - cos r) / pi`` on
-  ``[0, pi]``; on a planar problem headings uniform on the circle, density ``1 / pi``.
+  ``[0, pi]``.
 
 An EM fit gives ``s`` and the inlier fraction; the inlier threshold is the angle where an
 edge becomes more likely an outlier than an inlier. With no outliers the threshold moves far
@@ -18,47 +15,20 @@ into the inlier tail, so clean graphs lose no edges; with high noise it grows wi
 from __future__ import annotations
 
 import math
-from contextvars import ContextVar
 from dataclasses import dataclass
 
 import numpy as np
 
-from rotavg_ros.core.so3 import log_map
 from rotavg_ros.core.types import BoolArray, FloatArray
-
-NOISE_AXES: ContextVar[int] = ContextVar("NOISE_AXES", default=3)
-"""Axes of the rotation vector the noise acts on: 3, or 1 on a planar problem
-(:func:`noise_axes`). Read by :func:`fit_noise` and :func:`looks_gaussian`."""
-
-PLANAR_TOLERANCE = 1e-12
-"""A problem is planar where the measurements' rotation vectors have a second moment
-``sum v v^T`` whose two smaller eigenvalues sum to at most this fraction of the largest:
-exactly planar input (a 2D g2o file, a planar robot's headings) gives about 1e-32; a ground
-robot measured in 3D with 0.1 deg of noise on headings of a radian about 1e-5."""
-
-_MEDIAN_OF_CHI = {1: 0.6745, 3: 1.538}
-"""Median of the unit-scale chi distribution with 1 and 3 degrees of freedom."""
-
-
-def noise_axes(R: FloatArray) -> int:
-    """1 where every rotation in ``R`` (E, 3, 3) turns about one common axis (a planar
-    problem: its noise, and its residuals, then have one axis), else 3."""
-    v = log_map(np.asarray(R, dtype=np.float64).reshape(-1, 3, 3))
-    moments = np.linalg.eigvalsh(v.T @ v)  # ascending
-    if not moments[2] > 0.0:
-        return 3
-    return 1 if moments[0] + moments[1] <= PLANAR_TOLERANCE * moments[2] else 3
 
 
 @dataclass(frozen=True)
 class NoiseModel:
-    """Fitted mixture: per-axis noise ``sigma`` (rad), inlier fraction, threshold (rad), and
-    the axes the noise acts on (3, or 1 on a planar problem)."""
+    """Fitted mixture: per-axis noise ``sigma`` (rad), inlier fraction, threshold (rad)."""
 
     sigma: float
     inlier_fraction: float
     threshold: float
-    axes: int = 3
 
     @property
     def sigma_deg(self) -> float:
@@ -70,19 +40,8 @@ def _log_maxwell(r: FloatArray, s: float) -> FloatArray:
         - 3.0 * math.log(s) - r * r / (2.0 * s * s)
 
 
-def _log_inlier(r: FloatArray, s: float, axes: int) -> FloatArray:
-    """Log density of an inlier's residual angle: Maxwell (3 axes) or half-normal (1)."""
-    if axes == 3:
-        return _log_maxwell(r, s)
-    return 0.5 * math.log(2.0 / math.pi) - math.log(s) - r * r / (2.0 * s * s)
-
-
-def _log_uniform(r: FloatArray, axes: int = 3) -> FloatArray:
-    """Log density of an outlier's angle: a rotation uniform on SO(3) (3 axes), or a heading
-    uniform on the circle (1 axis: a planar problem's false measurement)."""
-    if axes == 3:
-        return np.log(np.maximum(1.0 - np.cos(r), 1e-300) / math.pi)
-    return np.full(np.shape(r), -math.log(math.pi))
+def _log_uniform(r: FloatArray) -> FloatArray:
+    return np.log(np.maximum(1.0 - np.cos(r), 1e-300) / math.pi)
 
 
 def fit_noise(
@@ -97,33 +56,32 @@ def fit_noise(
     ``min_sigma`` keeps the scale away from zero (exact data); the threshold is capped at
     ``max_threshold``. Returns a wide threshold when there are too few residuals to fit.
     """
-    axes = NOISE_AXES.get()
     r = np.asarray(r, dtype=np.float64)
     ok = np.isfinite(r)
     sc = np.ones(r.shape) if scale is None else np.asarray(scale, dtype=np.float64)
     r, sc = r[ok], sc[ok]
     if r.size < 5:
-        return NoiseModel(math.radians(5.0), 1.0, max_threshold, axes)
+        return NoiseModel(math.radians(5.0), 1.0, max_threshold)
     r = np.maximum(r, 1e-9)
     if scale is None:
         r = np.minimum(r, math.pi)
-    s = max(float(np.median(r)) / _MEDIAN_OF_CHI[axes], min_sigma)
+    s = max(float(np.median(r)) / 1.538, min_sigma)  # median of Maxwell(1) = 1.538
     p = 0.8
-    log_out = np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi), axes)
+    log_out = np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi))
     for _ in range(iterations):
-        a = math.log(p) + _log_inlier(r, s, axes)
+        a = math.log(p) + _log_maxwell(r, s)
         b = math.log(1.0 - p) + log_out
         gamma = 1.0 / (1.0 + np.exp(np.clip(b - a, -700, 700)))
         total = float(gamma.sum())
         if total <= 0:
             break
-        s_new = max(math.sqrt(float((gamma * r * r).sum()) / (axes * total)), min_sigma)
+        s_new = max(math.sqrt(float((gamma * r * r).sum()) / (3.0 * total)), min_sigma)
         p_new = min(max(total / r.size, 1e-3), 1.0 - 1e-6)
         done = abs(s_new - s) < 1e-6 * s and abs(p_new - p) < 1e-6
         s, p = s_new, p_new
         if done:
             break
-    return NoiseModel(s, p, _crossing(s, p, max_threshold, axes), axes)
+    return NoiseModel(s, p, _crossing(s, p, max_threshold))
 
 
 def is_inlier(r: FloatArray, model: NoiseModel, scale: FloatArray | None = None,
@@ -136,9 +94,8 @@ def is_inlier(r: FloatArray, model: NoiseModel, scale: FloatArray | None = None,
     p = model.inlier_fraction
     if p >= 1.0:
         return r <= max_threshold
-    log_in = math.log(p) + _log_inlier(r, model.sigma, model.axes)
-    log_out = math.log(1.0 - p) + np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi),
-                                                            model.axes)
+    log_in = math.log(p) + _log_maxwell(r, model.sigma)
+    log_out = math.log(1.0 - p) + np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi))
     return (log_in >= log_out) & (r <= max_threshold)
 
 
@@ -146,18 +103,15 @@ def log_likelihood(r: FloatArray, model: NoiseModel) -> float:
     """Log-likelihood of residual angles ``r`` (radians) under the fitted mixture."""
     r = np.clip(np.asarray(r, dtype=np.float64), 1e-9, math.pi)
     p = model.inlier_fraction
-    a = math.log(p) + _log_inlier(r, model.sigma, model.axes)
-    b = (math.log(1.0 - p) + _log_uniform(r, model.axes) if p < 1.0
-         else np.full(r.shape, -np.inf))
+    a = math.log(p) + _log_maxwell(r, model.sigma)
+    b = math.log(1.0 - p) + _log_uniform(r) if p < 1.0 else np.full(r.shape, -np.inf)
     return float(np.sum(np.logaddexp(a, b)))
 
 
-def _crossing(s: float, p: float, cap: float, axes: int = 3) -> float:
+def _crossing(s: float, p: float, cap: float) -> float:
     """Smallest angle above the inlier mode where outliers become more likely; <= cap."""
-    mode = s * math.sqrt(2.0) if axes == 3 else s  # (half-normal: from one sigma on)
-    grid = np.linspace(mode, max(cap, mode), 2000)
-    more_out = (math.log(1.0 - p) + _log_uniform(grid, axes)
-                > math.log(p) + _log_inlier(grid, s, axes))
+    grid = np.linspace(s * math.sqrt(2.0), max(cap, s * math.sqrt(2.0)), 2000)
+    more_out = math.log(1.0 - p) + _log_uniform(grid) > math.log(p) + _log_maxwell(grid, s)
     hit = np.flatnonzero(more_out)
     return min(float(grid[hit[0]]), cap) if hit.size else cap
 
@@ -183,19 +137,12 @@ def residual_shape(t: FloatArray, inlier: BoolArray) -> float:
     return float(np.mean(r) / math.sqrt(float(np.mean(r * r))))
 
 
-GAUSSIAN_SHAPE_PLANAR = 0.78
-""":data:`GAUSSIAN_SHAPE` on a planar problem (:data:`NOISE_AXES` 1): within 0.02 of a
-half-normal distribution's ``sqrt(2 / pi)`` = 0.798, Gaussian noise on one axis."""
-
-
 def looks_gaussian(t: FloatArray, inlier: BoolArray) -> bool:
     """Whether the residual angles ``t`` of the ``inlier`` edges look Gaussian
-    (:func:`residual_shape` at least :data:`GAUSSIAN_SHAPE`, or
-    :data:`GAUSSIAN_SHAPE_PLANAR` on a planar problem; False where it is undefined):
+    (:func:`residual_shape` at least :data:`GAUSSIAN_SHAPE`; False where it is undefined):
     least squares is then the better estimator on those edges."""
     shape = residual_shape(t, inlier)
-    bound = GAUSSIAN_SHAPE if NOISE_AXES.get() == 3 else GAUSSIAN_SHAPE_PLANAR
-    return math.isfinite(shape) and shape >= bound
+    return math.isfinite(shape) and shape >= GAUSSIAN_SHAPE
 
 
 def redundancy(num_nodes: int, inlier: BoolArray) -> float:
