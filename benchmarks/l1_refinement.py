@@ -42,7 +42,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     refine_least_squares,
     residual_angles,
 )
-from rotavg_ros.core.robust.l1_choice import L1_FLOOR, held_out_difference, l1_fit
+from rotavg_ros.core.robust.l1_choice import held_out_difference, l1_fit, l1_floor
 from rotavg_ros.core.robust.noise import residual_shape
 from rotavg_ros.core.solver import RotationAverager
 from rotavg_ros.core.types import FloatArray, IntArray
@@ -156,7 +156,7 @@ def _cross_validate(shared: Path, args: argparse.Namespace) -> int:
         for name in args.cases.split(","):
             case = builders[name](shared)
             start, i, j, R, w, r = _solved(case, shared)
-            eps = L1_FLOOR * float(np.median(np.sqrt(w) * r))  # as the solver's choice
+            eps = l1_floor(r, w)  # as the solver's choice
             truth = dict(enumerate(case.gt))
             ls = refine_least_squares(start, i, j, R, w, iterations=20)
             l1 = l1_fit(ls, i, j, R, w, eps)

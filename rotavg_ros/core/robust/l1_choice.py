@@ -78,6 +78,12 @@ class L1Verdict:
     folds_run: int = 0
 
 
+def l1_floor(r: FloatArray, w: FloatArray) -> float:
+    """``eps`` of the L1 fit: :data:`L1_FLOOR` times the median standardized residual
+    ``sqrt(w_e) r_e`` (``r``: residual angles of the least-squares fit)."""
+    return L1_FLOOR * float(np.median(np.sqrt(w) * r))
+
+
 def l1_fit(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
            eps: float, steps: int = L1_STEPS) -> FloatArray:
     """IRLS from ``rot`` towards ``min sum_e sqrt(w_e) |e_e|`` (floor ``eps`` on the
@@ -103,7 +109,7 @@ def choose_by_cross_validation(
     rotation in the fold's fits)."""
     ls = refine_least_squares(rot, i, j, R, w, iterations=20)
     r = residual_angles(ls, i, j, R)
-    eps = L1_FLOOR * float(np.median(np.sqrt(w) * r))
+    eps = l1_floor(r, w)
     in_sample = float(np.sum(w * r ** 2))
     given = float(np.sum(w * residual_angles(rot, i, j, R) ** 2))
     n = rot.shape[0]
