@@ -211,12 +211,16 @@ def default_and_oracle_errors(case: rc.RegimeCase) -> tuple[ArraySolution, np.nd
     return default, ours, best
 
 
-def test_default_profile_places_the_nodes_of_a_sparse_random_graph_with_false_edges() -> None:
+@pytest.mark.parametrize("seed", [1, 2])
+def test_default_profile_places_the_nodes_of_a_sparse_random_graph_with_false_edges(
+        seed: int) -> None:
     """Mean degree 10, 30% of the edges random (the suite's sfm/sparse200/out30 drawn with
-    seed 2): nodes with most of their edges true but left on a false one move back (the
-    relocalization's far moves that explain more edges); before, nine nodes stayed up to
-    170 deg off."""
-    case = rc.dense_case("sfm/sparse200/out30", 200, 10, outliers=0.3, seed=2)
+    seeds 1 and 2): nodes left on a false edge move back (the relocalization's far moves
+    that explain more edges). Seed 2: nine nodes stayed up to 170 deg off before those moves.
+    Seed 1: three nodes with 2-3 true edges of 5-7 stayed 140-177 deg off (2.97 deg mean)
+    until far moves were judged by truncated squares and the mean of agreeing predictions
+    was a hypothesis."""
+    case = rc.dense_case("sfm/sparse200/out30", 200, 10, outliers=0.3, seed=seed)
     _, ours, best = default_and_oracle_errors(case)
     assert ours.max() < 5.0
     assert ours.mean() < 1.25 * best.mean()

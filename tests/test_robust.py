@@ -665,6 +665,34 @@ def test_relocalize_follows_the_edges_that_agree_not_a_margin_on_the_cost() -> N
     assert math.degrees(rotation_angle(back[a] @ truth[a].T)) < 2.0
 
 
+def test_relocalize_takes_a_node_off_its_one_false_edge_to_three_true_ones() -> None:
+    """A node sitting on one of its false edges fits it exactly and saves a whole cap of the
+    truncated L1 cost; its three true edges, each 2.4 deg off about another axis, cost 0.8
+    cap each at the truth, and their predictions lie 3.4 deg apart, over the 3 deg cap from
+    each other. The L1 cost prefers where the node is; the mean of the three predictions
+    explains all three, and truncated squares at four noise scales prefer it."""
+    rng = np.random.default_rng(3)
+    truth = random_rotations(30, rng)
+    a, true_nbrs, false_nbrs = 5, np.array([10, 11, 12]), np.array([20, 21, 22])
+    oi, oj = np.triu_indices(30, 1)
+    others = (oi != a) & (oj != a)
+    own = true_nbrs.size + false_nbrs.size
+    i = np.r_[np.full(own, a), oi[others]]
+    j = np.r_[true_nbrs, false_nbrs, oj[others]]
+    R = _relative(truth, i, j)
+    for k, axis in enumerate(np.eye(3)):  # R_ij = R_i R_j^T, turned at node a's side
+        R[k] = exp_map(math.radians(2.4) * axis) @ R[k]
+    R[true_nbrs.size:own] = random_rotations(false_nbrs.size, rng)
+    w = np.ones(i.size)
+    cap = math.radians(3.0)
+    off = truth.copy()
+    off[a] = R[own - 1] @ truth[false_nbrs[-1]]  # on its last (false) edge
+    assert truncated_l1(off, i, j, R, w, cap) < truncated_l1(truth, i, j, R, w, cap)
+    back, moves = relocalize_nodes(off, i, j, R, w, cap)
+    assert moves == 1
+    assert math.degrees(rotation_angle(back[a] @ truth[a].T)) < 2.0  # the mean: 1.39 deg
+
+
 def test_gnc_per_edge_threshold_matches_a_scalar_one() -> None:
     i, j, R, truth, bad = _chain(120, 20, 0.3, seed=2)
     w = np.ones(i.size)
