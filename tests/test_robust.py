@@ -638,26 +638,35 @@ def test_relocalize_moves_back_a_node_its_edges_disagree_with() -> None:
     assert truncated_l1(back, i, j, R, w, cap) < truncated_l1(off, i, j, R, w, cap)
 
 
-def test_relocalize_follows_the_edges_that_agree_not_a_margin_on_the_cost() -> None:
-    """A node left on one of its false edges, with six true edges whose noise is a good
-    part of the cap (the other nodes exact, on every pair): its true rotation explains more
-    of its edges and costs less, but by less than one capped edge (the margin of the old
-    move rule, which kept such nodes where they were)."""
-    rng = np.random.default_rng(13)
+def _node_on_a_false_edge(rng: np.random.Generator, true_edges: int) -> tuple[
+        np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(truth, i, j, R, off)``: 30 nodes, every pair exact except node 5's own edges
+    (first in the arrays): ``true_edges`` true ones to nodes 10, 11, ... (exact: the caller
+    adds noise) and three random ones to nodes 20-22; ``off`` is the truth with node 5
+    moved onto its last (false) edge."""
     truth = random_rotations(30, rng)
-    a, true_nbrs, false_nbrs = 5, np.arange(10, 16), np.array([20, 21, 22])
+    a, true_nbrs, false_nbrs = 5, np.arange(10, 10 + true_edges), np.array([20, 21, 22])
     oi, oj = np.triu_indices(30, 1)
     others = (oi != a) & (oj != a)
     own = true_nbrs.size + false_nbrs.size
     i = np.r_[np.full(own, a), oi[others]]
     j = np.r_[true_nbrs, false_nbrs, oj[others]]
     R = _relative(truth, i, j)
-    R[:true_nbrs.size] = _noisy(R[:true_nbrs.size], 2.6, rng)  # about 4.1 deg each
     R[true_nbrs.size:own] = random_rotations(false_nbrs.size, rng)
-    w = np.ones(i.size)
-    cap = math.radians(5.0)
     off = truth.copy()
-    off[a] = R[own - 1] @ truth[false_nbrs[-1]]  # on its last (false) edge
+    off[a] = R[own - 1] @ truth[false_nbrs[-1]]
+    return truth, i, j, R, off
+
+
+def test_relocalize_follows_the_edges_that_agree_not_a_margin_on_the_cost() -> None:
+    """A node left on one of its false edges, with six true edges whose noise is a good
+    part of the cap (the other nodes exact, on every pair): its true rotation explains more
+    of its edges and costs less, but by less than one capped edge (the margin of the old
+    move rule, which kept such nodes where they were)."""
+    rng = np.random.default_rng(13)
+    truth, i, j, R, off = _node_on_a_false_edge(rng, 6)
+    R[:6] = _noisy(R[:6], 2.6, rng)  # about 4.1 deg each
+    a, w, cap = 5, np.ones(i.size), math.radians(5.0)
     saving = truncated_l1(off, i, j, R, w, cap) - truncated_l1(truth, i, j, R, w, cap)
     assert 0.0 < saving < cap
     back, moves = relocalize_nodes(off, i, j, R, w, cap)
@@ -671,22 +680,10 @@ def test_relocalize_takes_a_node_off_its_one_false_edge_to_three_true_ones() -> 
     cap each at the truth, and their predictions lie 3.4 deg apart, over the 3 deg cap from
     each other. The L1 cost prefers where the node is; the mean of the three predictions
     explains all three, and truncated squares at four noise scales prefer it."""
-    rng = np.random.default_rng(3)
-    truth = random_rotations(30, rng)
-    a, true_nbrs, false_nbrs = 5, np.array([10, 11, 12]), np.array([20, 21, 22])
-    oi, oj = np.triu_indices(30, 1)
-    others = (oi != a) & (oj != a)
-    own = true_nbrs.size + false_nbrs.size
-    i = np.r_[np.full(own, a), oi[others]]
-    j = np.r_[true_nbrs, false_nbrs, oj[others]]
-    R = _relative(truth, i, j)
-    for k, axis in enumerate(np.eye(3)):  # R_ij = R_i R_j^T, turned at node a's side
+    truth, i, j, R, off = _node_on_a_false_edge(np.random.default_rng(3), 3)
+    for k, axis in enumerate(np.eye(3)):  # R_ij = R_i R_j^T, turned at node 5's side
         R[k] = exp_map(math.radians(2.4) * axis) @ R[k]
-    R[true_nbrs.size:own] = random_rotations(false_nbrs.size, rng)
-    w = np.ones(i.size)
-    cap = math.radians(3.0)
-    off = truth.copy()
-    off[a] = R[own - 1] @ truth[false_nbrs[-1]]  # on its last (false) edge
+    a, w, cap = 5, np.ones(i.size), math.radians(3.0)
     assert truncated_l1(off, i, j, R, w, cap) < truncated_l1(truth, i, j, R, w, cap)
     back, moves = relocalize_nodes(off, i, j, R, w, cap)
     assert moves == 1
