@@ -94,7 +94,7 @@ def relocalize_nodes(
             other = np.where(f, j[e], i[e])
             P = np.where(f[:, None, None], R[e] @ rot[other], Rt[e] @ rot[other])
             # Hypotheses: the node's rotation, each prediction, and the chordal mean of the
-            # largest group of predictions within sqrt(2) caps of one of them (two
+            # largest group of predictions within sqrt(2) TLS_CAPS caps of one of them (two
             # predictions differ by two edges' noise: three true edges a little over a cap
             # from each other's predictions all agree with their mean).
             X = np.concatenate([rot[a][None], P])
