@@ -26,7 +26,8 @@ edges are true (a random graph of mean degree 10 with 30% false edges: nodes wit
 edges of 9 stayed 135-165 deg off). More explained edges is the evidence there. A node on
 one false edge fits it exactly and saves a whole cap in the L1 cost; three true edges at
 about 0.7 cap each then cost more than the two caps their agreement saves (``sfm/sparse200/
-out30`` drawn with seed 1: three nodes with 2-3 true edges of 5-7 stayed 140-177 deg off).
+out30`` drawn with seed 1: two or three nodes, by the re-solve's start, with 2-3 true edges
+of 5-7 stayed 140-177 deg off).
 Truncated squares at four noise scales (the second GNC pass's threshold and objective)
 count three such edges at about half a cap's square each. Far only: a hypothesis near the
 node's rotation is a local correction, which the least-squares re-fit makes; there the
