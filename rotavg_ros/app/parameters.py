@@ -169,8 +169,9 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         constraints="cpu, cuda, cuda:N or auto"),
     ParameterSpec(
         "threads", _SOLVER.runtime.threads or 0,  # SolverOptions' None is the node's 0
-        "Torch CPU threads for the solver, split among the depth candidates; 0 = one "
-        "thread per candidate, candidates in parallel up to the CPU count.",
+        "CPU threads for the solver: torch's, split among the depth candidates, and the "
+        "verification's re-solves from different starts side by side; 0 = one thread per "
+        "candidate, candidates (and re-solves) in parallel up to the CPU count.",
         range=IntRange(0, 1024)),
     ParameterSpec(
         "publish_markers", True,

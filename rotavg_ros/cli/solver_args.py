@@ -45,8 +45,9 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    help="filter threshold on d_chord(R_ij, R_ij^tree) (default %(default)s)")
     g.add_argument("--device", default=d.runtime.device, help="cpu, cuda or auto")
     g.add_argument("--threads", type=int, default=None,
-                   help="torch CPU threads, split among the depth candidates (default or 0: "
-                   "one per candidate, candidates in parallel up to the CPU count)")
+                   help="CPU threads: torch's, split among the depth candidates, and the "
+                   "verification's re-solves side by side (default or 0: one per candidate, "
+                   "candidates and re-solves in parallel up to the CPU count)")
     g.add_argument("--hidden-width", type=int, default=None,
                    help="width of H's hidden factors (>= 3; default: 3N up to 300 nodes, "
                    "64 above)")

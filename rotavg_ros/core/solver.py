@@ -9,7 +9,6 @@ the output gives every connected component its own gauge, with its anchor at ide
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable, Hashable, Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -46,6 +45,7 @@ from rotavg_ros.core.robust.verify import (
     verify,
 )
 from rotavg_ros.core.so3 import chordal_distance, geodesic_distance, project_to_so3
+from rotavg_ros.core.threads import cpu_count, verify_workers
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
 from rotavg_ros.errors import SolverError
@@ -295,7 +295,8 @@ class RotationAverager:
                 out = verify(n, i, j, R, w, rot, kept, starts, known_inlier=odometry,
                              initial_threshold=math.radians(opt.verify.initial_threshold_deg),
                              max_threshold=max_threshold, rounds=opt.verify.rounds,
-                             least_squares_below=chain_like)
+                             least_squares_below=chain_like,
+                             workers=verify_workers(i.size, opt.runtime.threads))
         except (np.linalg.LinAlgError, FloatingPointError, RuntimeError) as exc:
             self._say(f"verification failed ({type(exc).__name__}: {exc}); keeping the DMF "
                       "solution")
@@ -433,7 +434,7 @@ class RotationAverager:
                 n, i, j, R, w, starts, odometry,
                 initial_threshold=math.radians(opt.verify.initial_threshold_deg),
                 max_threshold=math.radians(opt.verify.max_threshold_deg),
-                rounds=opt.verify.rounds)
+                rounds=opt.verify.rounds, workers=verify_workers(i.size, opt.runtime.threads))
         except (np.linalg.LinAlgError, FloatingPointError, RuntimeError) as exc:
             self._say(f"robust re-solve failed ({type(exc).__name__}: {exc}); fitting every "
                       "edge the filter kept")
@@ -637,9 +638,8 @@ def _thread_plan(
     """
     if device != "cpu":
         return (candidates if graphed else 1), torch.get_num_threads()
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     if threads is None:
-        return max(1, min(candidates, cpus or 1)), 1
+        return max(1, min(candidates, cpu_count())), 1
     workers = max(1, min(candidates, threads))
     return workers, max(1, threads // workers)
 

@@ -19,6 +19,7 @@ conjugate gradients or SuperLU, by size and connectivity.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -120,10 +121,15 @@ class EliminationOrder:
         self.num_nodes = num_nodes
         self._edges = (i, j)
         self._rank: IntArray | None = None
+        self._lock = threading.Lock()  # the verification's threads share one order
 
     @property
     def rank(self) -> IntArray:
         """``rank[node]``: the node's position in the order (the anchor's is arbitrary)."""
+        with self._lock:
+            return self._rank_once()
+
+    def _rank_once(self) -> IntArray:
         if self._rank is None:
             i, j = self._edges
             n = self.num_nodes

@@ -85,6 +85,7 @@ from rotavg_ros.core.robust.noise import (
 )
 from rotavg_ros.core.robust.odometry_start import odometry_start
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
+from rotavg_ros.core.threads import map_in_threads
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 CHOICE_SIGMAS = 3.0
@@ -349,18 +350,18 @@ def robust_from(
 
 def robust_solutions(
     i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, starts: dict[str, FloatArray],
-    threshold: float,
+    threshold: float, workers: int = 1,
 ) -> dict[str, tuple[FloatArray, BoolArray]]:
     """``name -> (rotations, inliers)``: :func:`robust_from` each distinct start (a start
-    equal to an earlier one is skipped)."""
-    solutions: dict[str, tuple[FloatArray, BoolArray]] = {}
-    seen: list[FloatArray] = []
+    equal to an earlier one is skipped), on up to ``workers`` threads."""
+    distinct: dict[str, FloatArray] = {}
     for name, rotations in starts.items():
-        if any(np.allclose(rotations, other, atol=1e-9) for other in seen):
+        if any(np.allclose(rotations, other, atol=1e-9) for other in distinct.values()):
             continue  # the same start twice (a chain's spanning tree is the chain)
-        seen.append(rotations)
-        solutions[name] = robust_from(rotations, i, j, R, w, threshold)
-    return solutions
+        distinct[name] = rotations
+    solved = map_in_threads(lambda start: robust_from(start, i, j, R, w, threshold),
+                            distinct.values(), workers)
+    return dict(zip(distinct, solved, strict=True))
 
 
 def most_likely(solutions: dict[str, tuple[FloatArray, BoolArray]], i: IntArray,
@@ -430,16 +431,17 @@ def verify(
     rounds: int = 2,
     margin: float = 0.02,
     least_squares_below: float = 0.0,
+    workers: int = 1,
 ) -> VerifyOutcome:
     """Robust re-solve of every edge (:func:`robust_resolve`, the DMF solution one of its
     starts) and the choice against the DMF solution (:func:`choose`, with ``margin`` and
     ``least_squares_below``); see the module docstring.
 
     ``starts`` are extra start points (name -> rotations) besides the DMF solution and the
-    chain tree's rotations.
+    chain tree's rotations. ``workers``: threads for the re-solves from different starts.
     """
     robust = robust_resolve(num_nodes, i, j, R, w, starts, known_inlier, initial_threshold,
-                            max_threshold, rounds, dmf_rotations)
+                            max_threshold, rounds, dmf_rotations, workers)
     return choose(num_nodes, i, j, R, w, robust, dmf_rotations, dmf_kept, max_threshold,
                   margin, least_squares_below)
 
@@ -452,10 +454,12 @@ def robust_resolve(
     max_threshold: float = math.radians(90.0),
     rounds: int = 2,
     dmf_rotations: FloatArray | None = None,
+    workers: int = 1,
 ) -> RobustSolve:
     """Steps 1-5 of the module docstring: the robust re-solve of every edge from the DMF
     solution (if given), the chain tree's rotations (where there is odometry or no other
-    start) and ``starts`` (name -> rotations), and the noise scale it shows."""
+    start) and ``starts`` (name -> rotations), and the noise scale it shows. The GNC runs
+    from different starts take up to ``workers`` threads (the same result)."""
     odometry = np.zeros(i.size, bool) if known_inlier is None else known_inlier
     known = np.zeros(i.size, bool)  # trusted edges: none until the noise scale is known
     runs_left_out = 0
@@ -477,7 +481,8 @@ def robust_resolve(
         if not np.allclose(joined, chain_rot, atol=1e-9):
             chain["odometry"] = joined
     dmf = {} if dmf_rotations is None else {"dmf": dmf_rotations}
-    solutions = robust_solutions(i, j, R, w, {**dmf, **chain, **starts}, initial_threshold)
+    solutions = robust_solutions(i, j, R, w, {**dmf, **chain, **starts}, initial_threshold,
+                                 workers)
     start = most_likely(solutions, i, j, R, w, max_threshold)
     rot, inlier = solutions[start]
     rot, inlier, noise, t = _settle(rot, i, j, R, w, inlier, known, tree, rounds,
@@ -507,24 +512,28 @@ def robust_resolve(
                                 c=GNC_SIGMAS * noise.sigma, trusted=known)
         candidates: list[tuple[float, FloatArray, BoolArray]] = []
 
-        def tight_from(begin: FloatArray, mu_min: float) -> None:
-            tight_rot, tight_inlier = robust_from(begin, i, j, R, w, threshold, known, mu_min)
-            if not any(np.array_equal(tight_inlier, c[2]) for c in candidates):
-                candidates.append((tls(tight_rot), tight_rot, tight_inlier))
+        def tight_from(*begins: tuple[FloatArray, float]) -> None:
+            """GNC at ``threshold`` from each ``(start, mu_min)``, on up to ``workers``
+            threads; each new inlier set, in the starts' order, is a candidate."""
+            fits = map_in_threads(
+                lambda begin: robust_from(begin[0], i, j, R, w, threshold, known, begin[1]),
+                begins, workers)
+            for tight_rot, tight_inlier in fits:
+                if not any(np.array_equal(tight_inlier, c[2]) for c in candidates):
+                    candidates.append((tls(tight_rot), tight_rot, tight_inlier))
 
         def from_every_start(consistent: list[FloatArray]) -> None:
-            tight_from(rot, TIGHT_START_MU)
-            for chain_start in chain.values():
-                tight_from(chain_start, 0.0)
+            begins = [(rot, TIGHT_START_MU)] + [(start, 0.0) for start in chain.values()]
             if consistent:  # (the GNC keeps the order of the starts' costs: from the best)
-                tight_from(min(consistent, key=tls), TIGHT_START_MU)
+                begins.append((min(consistent, key=tls), TIGHT_START_MU))
+            tight_from(*begins)
 
         from_every_start([])
         if len(candidates) > 1:
             consistent = consistent_starts(num_nodes, i, j, R, w, odometry, noise.sigma)
             if consistent:
                 fits = [start for start, _ in consistent]
-                tight_from(min(fits, key=tls), TIGHT_START_MU)
+                tight_from((min(fits, key=tls), TIGHT_START_MU))
                 # The noise scale came from step 3's fit, which false closures the odometry's
                 # drift can explain may have bent: then a consistent start fits its own
                 # edges at a clearly lower scale, and at step 3's the bent fit costs least.
