@@ -76,13 +76,17 @@ def loop_statistics(
         return np.zeros(num_edges, np.int64), zeros, zeros, float("nan"), 0
     delta = loop_errors(R, tri.e_ab, tri.e_bc, tri.e_ac)
     epsilon = float(np.median(delta))
-    edges3 = np.concatenate([tri.e_ab, tri.e_bc, tri.e_ac])
-    delta3 = np.tile(delta, 3)
-    count = np.bincount(edges3, minlength=num_edges).astype(np.float64)
-    total = np.bincount(edges3, weights=delta3, minlength=num_edges).astype(np.float64,
-                                                                           copy=False)
-    support = np.bincount(edges3, weights=(delta3 < epsilon).astype(np.float64),
-                          minlength=num_edges).astype(np.int64)
+    low = delta < epsilon
+    count = np.zeros(num_edges)
+    total = np.zeros(num_edges)
+    support = np.zeros(num_edges, np.int64)
+    # Each triangle credits its three edges; the sums run over ab, then bc, then ac, in
+    # triangle order (np.add.at accumulates in index order, as a bincount would over the
+    # three concatenated), without the 3T-long copies.
+    for e in (tri.e_ab, tri.e_bc, tri.e_ac):
+        count += np.bincount(e, minlength=num_edges)
+        support += np.bincount(e[low], minlength=num_edges)
+        np.add.at(total, e, delta)
     return support, total, count, epsilon, tri.count
 
 

@@ -1,8 +1,8 @@
 """Vectorised triangle enumeration on an undirected simple graph.
 
 Edges are given as ``(i, j)`` index arrays with ``i < j`` and no duplicates. A triangle is
-reported once, as ``(a, b, c)`` with ``a < b < c``, together with the indices of its three
-edges ``ab``, ``bc`` and ``ac`` into the input arrays.
+reported once, as the indices of its three edges ``ab``, ``bc`` and ``ac`` into the input
+arrays, with ``a < b < c`` (:meth:`Triangles.nodes` gives the nodes).
 """
 
 from __future__ import annotations
@@ -16,9 +16,8 @@ from rotavg_ros.core.types import IntArray
 
 @dataclass(frozen=True)
 class Triangles:
-    """Triangles ``a < b < c`` and their edge indices."""
+    """Triangles ``a < b < c`` by the indices of their edges ``ab``, ``bc`` and ``ac``."""
 
-    nodes: IntArray  # (T, 3) a, b, c
     e_ab: IntArray
     e_bc: IntArray
     e_ac: IntArray
@@ -26,6 +25,11 @@ class Triangles:
     @property
     def count(self) -> int:
         return int(self.e_ab.shape[0])
+
+    def nodes(self, i: IntArray, j: IntArray) -> IntArray:
+        """(T, 3) nodes ``a, b, c`` of each triangle, from the edge arrays it was found in
+        (``a = i[ab]``, ``b = j[ab]``, ``c = j[ac]``; the filter needs only the edges)."""
+        return np.stack([i[self.e_ab], j[self.e_ab], j[self.e_ac]], axis=1)
 
 
 def enumerate_triangles(
@@ -45,7 +49,7 @@ def enumerate_triangles(
     j = np.asarray(j, dtype=np.int64)
     if i.size == 0:
         empty = np.zeros(0, np.int64)
-        return Triangles(np.zeros((0, 3), np.int64), empty, empty, empty)
+        return Triangles(empty, empty, empty)
     if np.any(i >= j):
         raise ValueError("edges must satisfy i < j")
     key = i * num_nodes + j
@@ -79,14 +83,9 @@ def enumerate_triangles(
             loc = np.searchsorted(sorted_key, want)
             loc = np.minimum(loc, sorted_key.size - 1)
             hit = sorted_key[loc] == want
-            parts.append((e_rep[hit], order[pos[hit]], order[loc[hit]], c[hit]))
+            parts.append((e_rep[hit], order[pos[hit]], order[loc[hit]]))
         start_edge = stop_edge
     if not parts:
         empty = np.zeros(0, np.int64)
-        return Triangles(np.zeros((0, 3), np.int64), empty, empty, empty)
-    e_ab = np.concatenate([p[0] for p in parts])
-    e_bc = np.concatenate([p[1] for p in parts])
-    e_ac = np.concatenate([p[2] for p in parts])
-    c = np.concatenate([p[3] for p in parts])
-    nodes = np.stack([i[e_ab], j[e_ab], c], axis=1)
-    return Triangles(nodes, e_ab, e_bc, e_ac)
+        return Triangles(empty, empty, empty)
+    return Triangles(*(np.concatenate([p[k] for p in parts]) for k in range(3)))
