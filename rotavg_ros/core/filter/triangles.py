@@ -63,7 +63,7 @@ def enumerate_triangles(
 
     cand_per_edge = out_deg[j]  # neighbours c > b of b, for edge (a, b)
     cum = np.concatenate([[0], np.cumsum(cand_per_edge)])
-    parts: list[tuple[IntArray, IntArray, IntArray, IntArray]] = []
+    parts: list[tuple[IntArray, IntArray, IntArray]] = []
     start_edge = 0
     num_edges = i.size
     while start_edge < num_edges:
