@@ -7,7 +7,12 @@ from itertools import combinations
 import numpy as np
 import pytest
 
-from rotavg_ros.core.filter.edge_filter import filter_edges, loop_statistics, tree_rotations
+from rotavg_ros.core.filter.edge_filter import (
+    filter_edges,
+    loop_errors,
+    loop_statistics,
+    tree_rotations,
+)
 from rotavg_ros.core.filter.triangles import enumerate_triangles
 from rotavg_ros.core.so3 import chordal_distance, random_rotations, rotation_about_axis
 
@@ -69,6 +74,33 @@ def test_triangles_edge_cases() -> None:
     assert enumerate_triangles(chain[:-1], chain[1:], 5).count == 0
     with pytest.raises(ValueError):
         enumerate_triangles(np.array([2]), np.array([1]), 3)
+
+
+def test_loop_statistics_sum_each_edges_loops_in_triangle_order() -> None:
+    """Per edge: the loops it lies on, those below the median loop error, and the sum of
+    their errors, added up over ab, then bc, then ac, in triangle order (bit for bit)."""
+    n = 40
+    i, j, Rij, _, _ = _noisy_graph(n, 0.5, 3.0, 0.2, seed=5)
+    support, total, count, epsilon, ntri = loop_statistics(i, j, Rij, n)
+    tri = enumerate_triangles(i, j, n)
+    assert ntri == tri.count > 0
+    loop = np.concatenate([tri.e_ab, tri.e_bc, tri.e_ac])
+    nodes = np.tile(tri.nodes(i, j), (3, 1))
+    a, b, c = nodes.T
+    # Each loop's error, d_chord(R_ab, R_ac R_bc^T), whichever edge of it is credited.
+    R = {(int(p), int(q)): r for p, q, r in zip(i, j, Rij, strict=True)}
+    by_hand = np.array([np.linalg.norm(R[(p, q)] - R[(p, r)] @ R[(q, r)].T)
+                        for p, q, r in zip(a.tolist(), b.tolist(), c.tolist(), strict=True)])
+    delta = np.tile(loop_errors(Rij, tri.e_ab, tri.e_bc, tri.e_ac), 3)
+    np.testing.assert_allclose(delta, by_hand, rtol=1e-12, atol=1e-15)
+    assert epsilon == np.median(delta[:tri.count])
+    expected_total = np.zeros(i.size)
+    for e, d in zip(loop.tolist(), delta, strict=True):
+        expected_total[e] += d
+    np.testing.assert_array_equal(count, np.bincount(loop, minlength=i.size))
+    np.testing.assert_array_equal(support,
+                                  np.bincount(loop[delta < epsilon], minlength=i.size))
+    np.testing.assert_array_equal(total, expected_total)  # the same additions, in order
 
 
 def test_loop_statistics_zero_on_consistent_data() -> None:
