@@ -179,6 +179,28 @@ def test_the_paper_profile_runs_every_candidate_to_the_end() -> None:
     assert SolverOptions().dense.prune_ratio is not None
 
 
+def test_the_default_profile_fits_the_shallowest_and_the_deepest_candidate_only() -> None:
+    """``bracket_depths``: of (2, 4, 6, 8) the default profile fits 2 and 8, each exactly as
+    when every candidate runs (its own seed), and chooses between them; ``paper`` fits all."""
+    g = _graph(24, 3)
+    flat: dict[str, Any] = dict(depths=(2, 4, 6, 8), iterations=200, prune_ratio=None,
+                                threads=1, verify=False)
+    bracket = RotationAverager(SolverOptions.for_profile("default", **flat)).solve(g)
+    every = RotationAverager(SolverOptions.for_profile(
+        "default", bracket_depths=False, **flat)).solve(g)
+    assert set(bracket.iterations_by_depth) == set(bracket.cost_by_depth) == {2, 8}
+    assert set(every.cost_by_depth) == {2, 4, 6, 8}
+    for d in (2, 8):
+        assert bracket.cost_by_depth[d] == every.cost_by_depth[d]
+    assert bracket.depth == min((2, 8), key=lambda d: every.cost_by_depth[d])
+    assert SolverOptions().dense.bracket_depths
+    assert not SolverOptions.for_profile("paper").dense.bracket_depths
+    previous = dict(zip(bracket.node_ids, bracket.rotations, strict=True))
+    warm = RotationAverager(SolverOptions.for_profile("default", **flat)).solve(
+        g, initial=previous, initial_depth=bracket.depth)
+    assert set(warm.cost_by_depth) == {bracket.depth}  # a warm start fits its depth only
+
+
 def test_profiles_choose_the_hidden_width_and_the_loss_form() -> None:
     """``paper``: the full width 3N up to 300 nodes and the gathered loss; ``default``:
     min(3N, 64) at every size and the whole-matrix loss on small dense graphs."""

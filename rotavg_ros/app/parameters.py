@@ -130,7 +130,9 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         choices=("auto", "dense", "sparse")),
     ParameterSpec(
         "depths", list(_SOLVER.dense.depths),
-        "Candidate DMF depths (positive, even); the one with the lowest cost wins.",
+        "Candidate DMF depths (positive, even); the one with the lowest cost wins. Dense "
+        "mode: the default profile fits the shallowest and the deepest of them, the paper "
+        "profile every one.",
         constraints="non-empty list of positive even integers"),
     ParameterSpec(
         "iterations", _SOLVER.dense.iterations,

@@ -31,7 +31,8 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    help="random seed; a seed gives bitwise-equal results on the CPU "
                    "(default %(default)s)")
     g.add_argument("--depths", default=",".join(map(str, d.dense.depths)),
-                   help="candidate depths, comma separated (default %(default)s)")
+                   help="candidate depths, comma separated; in dense mode the default "
+                   "profile fits the shallowest and the deepest (default %(default)s)")
     g.add_argument("--iterations", type=int, default=d.dense.iterations,
                    help="dense mode: Adam iterations at most (default %(default)s)")
     g.add_argument("--tolerance", type=float, default=d.dense.tolerance,

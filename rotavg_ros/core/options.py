@@ -55,6 +55,16 @@ class DenseFitOptions:
 
     depths: tuple[int, ...] = (2, 4, 6, 8)
     """Candidate depths d (even); H has d/2 factors. The best by the Eq. 3 cost wins."""
+    bracket_depths: bool = True
+    """Cold dense fits: fit only the shallowest and the deepest of ``depths`` (beyond the
+    paper; False: every candidate, profile ``paper``). Two fits instead of four, one per core
+    of a 2-core CPU. Evidence (``python -m benchmarks.depth_bracket``, 2026-12-03): the ten
+    ``sfm/`` regime cases at draws 0, 1, 2 and tangent 3, and nine stress / ad-hoc dense
+    graphs at draws 0 and tangent 1 (58 solves): the same errors on 54, to the printed
+    digit; Ellis + 30% at draws 0 and tangent 3, where depth 6 had won, median 0.397 ->
+    0.425 and 0.393 -> 0.425 deg (mean +0.004, +0.008; the best peer's median 0.93);
+    Ellis + 15% at draw 2 0.383 -> 0.386 (depth 4 had won); dense400/out30 at draw 2
+    0.149 -> 0.145. Depth 4 or 6 had won 7 of the 58 choices."""
     prune_ratio: float | None = 0.3
     """Candidate race (beyond the paper; :mod:`rotavg_ros.core.dmf.race`): from iteration
     ``prune_after`` on, every ``prune_every`` iterations, a cold dense fit stops when its
@@ -342,14 +352,15 @@ PROFILES: dict[str, dict[str, Any]] = {
     "default": {},
     "paper": {"verify": False, "prune_ratio": None, "sparse_precondition": False,
               "max_full_width_nodes": 300, "dense_product_density": None,
-              "reweight_floor": None},
+              "reweight_floor": None, "bracket_depths": False},
 }
 """Named option sets by flat name. ``paper`` is Algorithm 1 and the DMF of the paper to the
 letter (with our documented tie rule): every depth candidate runs to the end, with the
 full hidden width 3N up to 300 nodes and the loss gathered over the observed blocks;
 ``default`` adds the verification stage, reweights every edge afresh by its own residual,
-stops depth candidates that have clearly lost, uses hidden width ``min(3N, 64)`` and, on
-small dense graphs, the whole-matrix loss."""
+fits the shallowest and the deepest depth candidate only and stops one that has clearly
+lost, uses hidden width ``min(3N, 64)`` and, on small dense graphs, the whole-matrix
+loss."""
 
 
 @dataclass

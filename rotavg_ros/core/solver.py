@@ -531,10 +531,11 @@ class RotationAverager:
         warm: FloatArray | None = None, warm_depth: int | None = None,
         chordal: FloatArray | None = None,
     ) -> dict[int, DMFFit]:
-        """Each depth candidate's fit. ``warm``: start rotations near the answer (a previous
-        solution): dense mode then fits the depth ``warm_depth`` only, briefly; sparse mode
-        judges the edges at it first. ``chordal``: the chordal solution of these edges, if
-        already computed (sparse mode's start without ``warm``)."""
+        """Each depth candidate's fit (a cold dense fit with ``bracket_depths``: the
+        shallowest and the deepest candidate only). ``warm``: start rotations near the answer
+        (a previous solution): dense mode then fits the depth ``warm_depth`` only, briefly;
+        sparse mode judges the edges at it first. ``chordal``: the chordal solution of these
+        edges, if already computed (sparse mode's start without ``warm``)."""
         opt = self.options
         dense, runtime = opt.dense, opt.runtime
         device = resolve_device(runtime.device)
@@ -542,6 +543,8 @@ class RotationAverager:
         depths = list(dict.fromkeys(opt.sparse.depths if sparse else dense.depths))
         if warm is not None and not sparse:
             depths = [warm_depth if warm_depth in depths else depths[0]]
+        elif not sparse and dense.bracket_depths:  # the shallowest and the deepest only
+            depths = [d for d in depths if d in (min(depths), max(depths))]
         H0: FloatArray | None = warm
         delta = 0.0
         if sparse and dense.explicit_constraint:
