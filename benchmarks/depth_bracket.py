@@ -74,12 +74,15 @@ def main() -> int:
                      for n, k, d, o, s in DENSE_GRAPHS]
     print("case: bracket (depths 2, 8) | every candidate (2, 4, 6, 8): mean / median deg, "
           "depth chosen, wall s")
+    same_count = 0
     for name, build in builders:
         case = build()
         runs = [solve(case, bracket) for bracket in (True, False)]
         same = f"{runs[0][0]:.3f}/{runs[0][1]:.3f}" == f"{runs[1][0]:.3f}/{runs[1][1]:.3f}"
+        same_count += same
         cells = [f"{m:.3f}/{med:.3f} d{d} {w:.1f}s" for m, med, d, w in runs]
         print(f"{name:36s} {cells[0]} | {cells[1]}{'  same' if same else ''}", flush=True)
+    print(f"the same errors on {same_count} of {len(builders)} cases")
     return 0
 
 
