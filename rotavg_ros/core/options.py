@@ -61,9 +61,9 @@ class DenseFitOptions:
     of a 2-core CPU. Evidence (``python -m benchmarks.depth_bracket``, 2026-12-03): the ten
     ``sfm/`` regime cases at draws 0, 1, 2 and tangent 3, and nine stress / ad-hoc dense
     graphs at draws 0, tangent 1, 21 and tangent 22 (76 solves): the same errors on 72, to
-    the printed digit; Ellis + 30% at draws 0 and tangent 3, where depth 6 had won, median 0.397 ->
-    0.425 and 0.393 -> 0.425 deg (mean +0.004, +0.008; the best peer's median 0.93);
-    Ellis + 15% at draw 2 0.383 -> 0.386 (depth 4 had won); dense400/out30 at draw 2
+    the printed digit; Ellis + 30% at draws 0 and tangent 3, where depth 6 had won, median
+    0.397 -> 0.425 and 0.393 -> 0.425 deg (mean +0.004, +0.008; the best peer's median
+    0.93); Ellis + 15% at draw 2 0.383 -> 0.386 (depth 4 had won); dense400/out30 at draw 2
     0.149 -> 0.145. Depth 4 or 6 had won 7 of the 76 choices."""
     prune_ratio: float | None = 0.3
     """Candidate race (beyond the paper; :mod:`rotavg_ros.core.dmf.race`): from iteration
