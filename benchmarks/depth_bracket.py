@@ -24,17 +24,14 @@ from functools import partial
 
 from benchmarks.datasets import shared_dir_or_say
 from benchmarks.regime_cases import NOISE_MODELS, RegimeCase, all_cases, dense_case
+from benchmarks.regime_stress import stress_cases
 from benchmarks.regimes import our_options
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.solver import RotationAverager
 
-DENSE_GRAPHS = (
-    # (name, nodes, mean degree, outlier share, noise in deg)
-    ("stress/dense200-deg10/out30-noise3", 200, 10, 0.3, 3.0),
-    ("stress/dense400/out30-noise5", 400, 40, 0.3, 5.0),
-    ("stress/dense100/out70", 100, 50, 0.7, 2.0),
-    ("stress/dense400/clean-noise5", 400, 40, 0.0, 5.0),
-    ("stress/dense1000-deg30/clean-noise5", 1000, 30, 0.0, 5.0),
+AD_HOC_DENSE = (
+    # (name, nodes, mean degree, outlier share, noise in deg): dense graphs beside the
+    # stress variants' five
     ("adhoc/dense300-deg30/out40-noise3", 300, 30, 0.4, 3.0),
     ("adhoc/dense150-deg60/out60", 150, 60, 0.6, 2.0),
     ("adhoc/dense600-deg20/out20-noise8", 600, 20, 0.2, 8.0),
@@ -69,9 +66,11 @@ def main() -> int:
         suite = all_cases(args.seed, args.noise_model)
         builders += [(n, partial(suite[n], shared)) for n in suite if n.startswith("sfm/")]
     if "stress" in args.cases:
+        stress = [b() for b in stress_cases(shared, args.seed, args.noise_model)]
+        builders += [(c.name, partial(lambda c: c, c)) for c in stress if "/dense" in c.name]
         builders += [(n, partial(dense_case, n, k, d, outliers=o, noise_deg=s, seed=args.seed,
                                  noise_model=args.noise_model))
-                     for n, k, d, o, s in DENSE_GRAPHS]
+                     for n, k, d, o, s in AD_HOC_DENSE]
     print("case: bracket (depths 2, 8) | every candidate (2, 4, 6, 8): mean / median deg, "
           "depth chosen, wall s")
     same_count = 0
