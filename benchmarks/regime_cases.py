@@ -302,16 +302,28 @@ def _closure_rules(num_nodes: int, odometry: list[tuple[int, int]]) -> tuple[
     return bad, add, used
 
 
+PLACEMENT_TRIES = 1000
+"""Random draws per closure before a generator gives up (a clear error, not a hang)."""
+GROUP_TRIES = 100
+"""Failed placements of a group of false closures (each of up to 1,000 draws) before
+:func:`chain_case` gives up."""
+
+
 def _random_pairs(num_nodes: int, count: int, rng: np.random.Generator,
                   bad: Callable[[int, int], bool], add: Callable[[int, int], None]
                   ) -> list[tuple[int, int]]:
     """``count`` random node pairs ``(a, b)``, ``a < b``, that ``bad`` allows (each added)."""
     out: list[tuple[int, int]] = []
-    while len(out) < count:
+    for _ in range(PLACEMENT_TRIES * max(count, 1)):
+        if len(out) == count:
+            return out
         a, b = sorted(int(x) for x in rng.integers(0, num_nodes, size=2))
         if not bad(a, b):
             add(a, b)
             out.append((a, b))
+    if len(out) < count:
+        raise ValueError(f"could not place {count} loop closures on {num_nodes} keyframes "
+                         f"under the placement rules (placed {len(out)})")
     return out
 
 
@@ -340,10 +352,16 @@ def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float 
     gi_l: list[int] = []
     gj_l: list[int] = []
     g_R: list[FloatArray] = []
+    failed = 0
     while len(gi_l) < n_grp:
         k = min(int(rng.integers(4, 9)), n_grp - len(gi_l))
         gi, gj, gR = grouped_false_edges(gt, set(used), 1, (k, k), 40, loop_noise_deg, rng,
                                          stride=2, forbid=bad, noise_model=noise_model)
+        if gi.size == 0:
+            failed += 1
+            if failed >= GROUP_TRIES:  # (else this loop would never end)
+                raise ValueError(f"could not place a group of {k} false closures on "
+                                 f"{num_nodes} keyframes under the placement rules")
         for a, b in zip(gi.tolist(), gj.tolist(), strict=True):
             add(a, b)
         gi_l += gi.tolist()

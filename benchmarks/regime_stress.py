@@ -1,9 +1,10 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Thirty-one cases outside the record suite of :mod:`benchmarks.regimes`: fifteen drawn with
-the suite's generators at parameters the suite does not use (noise between its levels,
+Thirty-four cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
-dense graphs at 5 deg without false edges),
+dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
+7 false ones, the issue's new-user graph),
 five graphs of kinds the suite has none of: chains in pieces that only loop closures
 join (two or three sessions; a chain with dropped odometry) and a route driven three times,
 whose true closures come in runs; five planar robots (every rotation about z, noise
@@ -100,6 +101,9 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
         chain("stress/chain/2000/grouped40", 2000, closures=60, false_grouped=0.40),
         chain("stress/chain/300/clean-noise5", 300, closures=20, odo_noise_deg=5.0,
               loop_noise_deg=5.0),
+        chain("stress/chain/50/rand2", 50, closures=8, false_random=0.2),
+        chain("stress/chain/50/rand7", 50, closures=8, false_random=7 / 15),
+        chain("stress/chain/100/grouped7", 100, closures=8, false_grouped=7 / 15),
         pieces("stress/sessions/2x600-rand25", 1200, sessions=2, closures=40,
                false_random=0.25),
         pieces("stress/sessions/3x400-rand30", 1200, sessions=3, closures=45,

@@ -275,7 +275,11 @@ class VerifyOptions:
     draws; on random-closure chains the two agree. Where the DMF is fitted first (the
     node's warm solves, graphs whose chordal solution shows no outlier) the choice compares
     it with the re-solve by their truncated squares there, not by the L1 cost, and no DMF
-    refit replaces a re-solve that stands. 0 turns this off."""
+    refit replaces a re-solve that stands. 0 turns this off. The same bound marks the graphs
+    (with odometry) on which the re-solve always runs its tight pass with the pairwise
+    closure test (:func:`~rotavg_ros.core.robust.verify.robust_resolve`), whatever
+    ``least_squares_where_gaussian``: there a few false closures can bend the fit until none
+    shows as an outlier."""
     l1_by_cross_validation: bool = field(default=True,
                                          metadata=_flat("l1_by_cross_validation"))
     """Sparse mode, on graphs of at most ``l1_max_nodes`` nodes whose inliers' redundancy

@@ -296,7 +296,8 @@ class RotationAverager:
                              initial_threshold=math.radians(opt.verify.initial_threshold_deg),
                              max_threshold=max_threshold, rounds=opt.verify.rounds,
                              least_squares_below=chain_like,
-                             workers=verify_workers(i.size, opt.runtime.threads))
+                             workers=verify_workers(i.size, opt.runtime.threads),
+                             chain_below=opt.verify.least_squares_below_redundancy)
         except (np.linalg.LinAlgError, FloatingPointError, RuntimeError) as exc:
             self._say(f"verification failed ({type(exc).__name__}: {exc}); keeping the DMF "
                       "solution")
@@ -434,7 +435,8 @@ class RotationAverager:
                 n, i, j, R, w, starts, odometry,
                 initial_threshold=math.radians(opt.verify.initial_threshold_deg),
                 max_threshold=math.radians(opt.verify.max_threshold_deg),
-                rounds=opt.verify.rounds, workers=verify_workers(i.size, opt.runtime.threads))
+                rounds=opt.verify.rounds, workers=verify_workers(i.size, opt.runtime.threads),
+                chain_below=opt.verify.least_squares_below_redundancy)
         except (np.linalg.LinAlgError, FloatingPointError, RuntimeError) as exc:
             self._say(f"robust re-solve failed ({type(exc).__name__}: {exc}); fitting every "
                       "edge the filter kept")
