@@ -87,8 +87,11 @@ class Result:
 # ------------------------------------------------------------------------ running
 
 
-def _solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
-                profile: str = "default") -> tuple[np.ndarray, float, str]:
+def solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
+               profile: str = "default") -> tuple[np.ndarray, float, str]:
+    """Our solver in this process on ``case`` (its edges ``keep``, default all), with the
+    ``profile`` and flat options: ``(world-to-node rotations in case order, solve wall time
+    s, note)``."""
     g = case.view_graph(keep)
     t0 = time.perf_counter()
     res = RotationAverager(our_options(profile, **flat)).solve(g)
@@ -110,13 +113,13 @@ def _solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
 def _solve(case: RegimeCase, method: str, device: str) -> tuple[np.ndarray, float, str]:
     ours = {"seed": 0, "device": device}
     if method == OURS:
-        return _solve_ours(case, None, ours)
+        return solve_ours(case, None, ours)
     if method == OURS_PAPER:
-        return _solve_ours(case, None, ours, profile="paper")
+        return solve_ours(case, None, ours, profile="paper")
     if method == OURS_NOFILTER:
-        return _solve_ours(case, None, {**ours, "use_filter": False})
+        return solve_ours(case, None, {**ours, "use_filter": False})
     if method == ORACLE:
-        return _solve_ours(case, case.inlier, ours)
+        return solve_ours(case, case.inlier, ours)
     sigma = float(np.radians(case.sigma_deg))
     if method == "gtsam_gnc_tls":
         rot, wall = peers.run_gtsam_gnc_tls(case.num_nodes, case.i, case.j, case.R,

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from benchmarks.regime_cases import RegimeCase, chain_case
-from benchmarks.regimes import _solve_ours, evaluate, run_method
+from benchmarks.regimes import evaluate, run_method, solve_ours
 
 PEERS = ("gtsam_chordal", "gtsam_gnc_tls", "gtsam_gnc_tls+odo")
 KINDS = (("rand2", "false_random", 2), ("rand7", "false_random", 7),
@@ -49,7 +49,7 @@ def _seeds(text: str) -> list[int]:
 
 
 def _ours(case: RegimeCase, keep: np.ndarray | None) -> tuple[tuple[float, float, float], str]:
-    rot, wall, note = _solve_ours(case, keep, {"seed": 0, "device": "cpu"})
+    rot, wall, note = solve_ours(case, keep, {"seed": 0, "device": "cpu"})
     stats = evaluate(dict(enumerate(rot)), dict(enumerate(case.gt)))
     return (stats.mean_deg, stats.median_deg, wall), note
 

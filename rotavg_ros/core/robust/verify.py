@@ -482,8 +482,9 @@ def robust_resolve(
     # whichever closure it meets first, and the pieces joined by the closures that agree
     # (:func:`~.odometry_start.odometry_start`) are one more start.
     chain_rot = tree_rotations(i, j, R, np.flatnonzero(tree), num_nodes)
-    chain = {"chain": chain_rot} if odometry.any() or not starts else {}
-    if odometry.any():
+    has_odometry = bool(odometry.any())
+    chain = {"chain": chain_rot} if has_odometry or not starts else {}
+    if has_odometry:
         joined = odometry_start(num_nodes, i, j, R, w, odometry, initial_threshold)
         if not np.allclose(joined, chain_rot, atol=1e-9):
             chain["odometry"] = joined
@@ -511,8 +512,8 @@ def robust_resolve(
     # chain with 8 true and 2 false closures: no outlier, 7.1 deg per axis against the
     # odometry's 1.4). Without odometry there is nothing to judge the closures by.
     adaptive = GNC_SIGMAS * noise.sigma / np.sqrt(w)
-    chain_like = bool(odometry.any()) and redundancy(num_nodes, inlier) < chain_below
-    if math.isfinite(noise.sigma) and odometry.any() and (chain_like or not inlier.all()):
+    chain_like = has_odometry and redundancy(num_nodes, inlier) < chain_below
+    if math.isfinite(noise.sigma) and has_odometry and (chain_like or not inlier.all()):
         threshold = np.minimum(adaptive, initial_threshold)
         known = odometry
         inlier |= known
