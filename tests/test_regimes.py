@@ -242,6 +242,7 @@ def test_default_profile_rejects_groups_of_consistent_false_closures_on_a_chain(
 @pytest.mark.parametrize("name, kind, seed, model", [
     ("short/100/rand2", "false_random", 102, "tangent"),
     ("short/50/grouped7", "false_grouped", 107, "folded"),
+    ("short/50/grouped7", "false_grouped", 113, "tangent"),
 ])
 def test_default_profile_rejects_false_closures_that_bend_a_short_chain(
         name: str, kind: str, seed: int, model: str) -> None:
@@ -252,7 +253,10 @@ def test_default_profile_rejects_false_closures_that_bend_a_short_chain(
     test did not run: 9.9 deg mean against the oracle's 2.2. 50 keyframes and a group of 7
     consistent false closures (seed 107): step 3 found three outliers but read 8.2 deg,
     above which the tight pass did not run either: four of the group kept, 20.7 deg mean
-    against the oracle's 1.8."""
+    against the oracle's 1.8. The same at seed 113: step 3 left out four of the group, the
+    three kept lifted the inliers' redundancy to 0.18, above the chain bound 0.15, and the
+    tight GNC's starts agreed, so the pairwise test did not run: 15.0 deg mean against the
+    oracle's 2.0. It now runs wherever the closures are few."""
     false = 2 / 10 if kind == "false_random" else 7 / 15
     case = rc.chain_case(name, int(name.split("/")[1]), closures=8, seed=seed,
                          noise_model=model, **{kind: false})
