@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from benchmarks import regime_cases as rc
-from rotavg_ros.core.robust.closure_consistency import _mutually_consistent, consistent_closures
+from rotavg_ros.core.robust.closure_consistency import (
+    CHI2_3_Q25,
+    LOOP_QUANTILE,
+    _mutually_consistent,
+    consistent_closures,
+    loop_noise_scale,
+)
 from rotavg_ros.core.robust.odometry_start import odometry_rotations
 
 
@@ -37,6 +43,35 @@ def test_a_group_of_consistent_false_closures_is_dropped_and_the_true_ones_kept(
     assert keep[odometry].all()
     assert not keep[~case.inlier].any()
     assert np.count_nonzero(~keep & case.inlier) <= 1
+
+
+def test_chi2_3_q25_is_the_loop_quantile_of_chi_square_with_3_dof() -> None:
+    from scipy import stats
+
+    assert abs(CHI2_3_Q25 - stats.chi2.ppf(LOOP_QUANTILE, 3)) < 1e-3
+
+
+def test_the_loops_noise_scale_is_the_odometrys_despite_many_false_closures() -> None:
+    """The closures' loops over the odometry read the generator's noise (1.5 deg angles,
+    0.87 deg per axis) with 40% random false closures, whatever a fit says (36 true
+    closures: over 12 draws 0.70-1.49 deg, 0.58-1.34 from the true closures alone); without
+    odometry, or with too few closures, there is no answer."""
+    true_sigma = np.radians(1.5) / np.sqrt(3.0)
+    for seed in (0, 1):
+        case = rc.chain_case("test/loops", 1000, closures=36, false_random=0.4, seed=seed)
+        w = np.ones(case.num_edges)
+        sigma = loop_noise_scale(case.num_nodes, case.i, case.j, case.R, w, case.odometry)
+        assert 0.5 * true_sigma < sigma < 2.0 * true_sigma
+        # Information weights 4x (a quarter of the variance): the scale of a unit-weight
+        # edge doubles.
+        doubled = loop_noise_scale(case.num_nodes, case.i, case.j, case.R, 4.0 * w,
+                                   case.odometry)
+        assert abs(doubled - 2.0 * sigma) < 1e-9
+    none = np.zeros(case.num_edges, bool)
+    assert np.isnan(loop_noise_scale(case.num_nodes, case.i, case.j, case.R, w, none))
+    few = case.odometry | (np.cumsum(~case.odometry) <= 3)
+    assert np.isnan(loop_noise_scale(case.num_nodes, case.i[few], case.j[few], case.R[few],
+                                     w[few], case.odometry[few]))
 
 
 def test_nothing_is_dropped_without_odometry_or_a_noise_scale() -> None:

@@ -239,6 +239,22 @@ def test_default_profile_rejects_groups_of_consistent_false_closures_on_a_chain(
     assert ours.mean() < 1.1 * best.mean()
 
 
+def test_default_profile_reads_the_pairwise_tests_scale_from_the_loops() -> None:
+    """A 1,000-keyframe chain, 36 true loop closures and 24 random false ones (the regime
+    benchmark's chain/1000/rand40 at draw 14, folded noise). The false closures bent step
+    3's fit until it cut odometry: its noise scale read 10.5 deg per axis (the odometry's is
+    0.87), and the pairwise test, run at that scale and at a half and a quarter of it, kept
+    9 false closures at best. Every false closure stayed in, 14 true ones went out: 22.8
+    deg mean against the oracle's 3.4. The closures' own loops over the odometry read 0.88
+    deg (closure_consistency.loop_noise_scale), and the test at that scale keeps exactly
+    the true ones."""
+    case = rc.chain_case("chain/1000/rand40", 1000, closures=36, false_random=0.40, seed=14)
+    assert case.inlier is not None
+    default, ours, best = default_and_oracle_errors(case)
+    assert np.array_equal(default.kept, case.inlier)
+    assert ours.mean() < 1.05 * best.mean()
+
+
 @pytest.mark.parametrize("name, kind, seed, model", [
     ("short/100/rand2", "false_random", 102, "tangent"),
     ("short/50/grouped7", "false_grouped", 107, "folded"),

@@ -15,6 +15,11 @@ closures' own ``1 / w``. A pair whose squared loop angle exceeds ``CHI2_3_999`` 
 variance is inconsistent. Far-apart closures are loosely tested (the drift between them
 excuses much), closures between the same two places tightly.
 
+The same loops, one closure at a time, give a noise scale that no solution's fit enters
+(:func:`loop_noise_scale`): a true closure's squared loop angle is its loop's variance
+times a chi-square with 3 degrees of freedom, so a low quantile of the ratios reads the
+scale while most closures are true.
+
 The set kept is a large mutually consistent one: the closure in the most inconsistent pairs
 is dropped, then again, until no inconsistent pair is left (a greedy maximum independent set
 of the conflict graph, where PCM takes a maximum clique of the consistency graph).
@@ -25,7 +30,9 @@ node indices.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -42,7 +49,79 @@ its time and memory are quadratic in them (4 bytes per pair: 144 MB at this limi
 for the 4,615 closures of parking-garage at three noise scales on the project's 2-core
 machine, 1.1-1.5 s before the blocks were computed in place)."""
 
+LOOP_QUANTILE = 0.25
+"""The quantile of the closures' standardized squared loop angles that
+:func:`loop_noise_scale` reads the noise scale from."""
+CHI2_3_Q25 = 1.2125
+"""The 25% quantile of the chi-square distribution with 3 degrees of freedom
+(:data:`LOOP_QUANTILE`'s; a test checks it against scipy)."""
+LOOP_MIN_CLOSURES = 4
+"""Fewer testable closures than this give :func:`loop_noise_scale` no answer."""
+
 _ROWS = 256  # pairs are tested in blocks of this many rows (4 MB temporaries at the limit)
+
+
+@dataclass
+class ClosureLoops:
+    """Each testable loop closure ``e = (a, b)`` (``a < b``, both ends on one piece of the
+    odometry) with the loop it closes over the odometry: ``E`` its error rotation
+    ``Q_a^T R_ab Q_b`` (``Q`` the odometry chain's composed rotations), ``pa``, ``pb`` the
+    odometry variance (in units of a unit-weight edge's: the sum of ``1 / w``) from the
+    piece's start to ``a`` and to ``b``, ``own`` the closure's own ``1 / w``."""
+
+    testable: IntArray
+    a: IntArray
+    piece: IntArray
+    """(num_nodes,) the odometry piece of each node."""
+    E: FloatArray
+    pa: FloatArray
+    pb: FloatArray
+    own: FloatArray
+
+
+def _closure_loops(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+                   odometry: BoolArray) -> ClosureLoops | None:
+    """The loops the closures close over the odometry (:class:`ClosureLoops`); None without
+    odometry."""
+    if not odometry.any():
+        return None
+    Q, piece = odometry_rotations(num_nodes, i, j, R, odometry)
+    a, b = np.minimum(i, j), np.maximum(i, j)
+    testable = np.flatnonzero(~odometry & (piece[a] == piece[b]))
+    a, b = a[testable], b[testable]
+    Rab = np.where((i[testable] < j[testable])[:, None, None], R[testable],
+                   R[testable].transpose(0, 2, 1))
+    E = Q[a].transpose(0, 2, 1) @ Rab @ Q[b]
+    # Odometry variance along the chain: from x to y in one piece, prefix[y] - prefix[x].
+    # (A zero-weight edge has infinite variance: the pairs through it are never in conflict.)
+    with np.errstate(divide="ignore"):
+        inv_w = np.zeros(num_nodes)
+        oi, oj = i[odometry], j[odometry]
+        inv_w[np.minimum(oi, oj)] = 1.0 / w[odometry]
+        own = 1.0 / w[testable]
+    prefix = np.concatenate([[0.0], np.cumsum(inv_w)[:-1]])
+    return ClosureLoops(testable, a, piece, E, prefix[a], prefix[b], own)
+
+
+def loop_noise_scale(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+                     odometry: BoolArray) -> float:
+    """The noise scale (per axis of a unit-weight edge, radians) that the loops the closures
+    close over the odometry show, whatever any solution says: a true closure's loop angle
+    ``theta`` has ``theta^2 ~ sigma^2 (v + own) chi2_3`` (``v`` the odometry variance along
+    it), so ``sigma^2`` is the :data:`LOOP_QUANTILE` quantile of ``theta^2 / (v + own)`` over
+    that of ``chi2_3``. The lower quantile stands while false closures, whose loops are far
+    off, are fewer than about three quarters. NaN with fewer than :data:`LOOP_MIN_CLOSURES`
+    testable closures."""
+    loops = _closure_loops(num_nodes, i, j, R, w, odometry)
+    if loops is None or loops.testable.size < LOOP_MIN_CLOSURES:
+        return math.nan
+    angle = np.arccos(np.clip((np.trace(loops.E, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    with np.errstate(invalid="ignore"):
+        ratio = angle ** 2 / (loops.pb - loops.pa + loops.own)
+    ratio = ratio[np.isfinite(ratio)]
+    if ratio.size < LOOP_MIN_CLOSURES:
+        return math.nan
+    return math.sqrt(float(np.quantile(ratio, LOOP_QUANTILE)) / CHI2_3_Q25)
 
 
 def consistent_closures(
@@ -54,28 +133,14 @@ def consistent_closures(
     the test cannot reach (its ends on different pieces of the chain, or too many closures),
     and a mutually consistent set of the others."""
     everything = [np.ones(i.size, bool) for _ in sigmas]
-    if not odometry.any():
+    loops = _closure_loops(num_nodes, i, j, R, w, odometry)
+    if loops is None or not 2 <= loops.testable.size <= MAX_CLOSURES:
         return everything
-    Q, piece = odometry_rotations(num_nodes, i, j, R, odometry)
-    a, b = np.minimum(i, j), np.maximum(i, j)
-    testable = np.flatnonzero(~odometry & (piece[a] == piece[b]))
-    if testable.size < 2 or testable.size > MAX_CLOSURES:
-        return everything
-    a, b = a[testable], b[testable]
-    Rab = np.where((i[testable] < j[testable])[:, None, None], R[testable],
-                   R[testable].transpose(0, 2, 1))
-    E = (Q[a].transpose(0, 2, 1) @ Rab @ Q[b]).reshape(-1, 9)
-    # Odometry variance (in units of a unit-weight edge's) along the chain: from x to y in
-    # one piece, prefix[y] - prefix[x].
-    # (A zero-weight edge has infinite variance: the pairs through it are never in conflict.)
-    with np.errstate(divide="ignore"):
-        inv_w = np.zeros(num_nodes)
-        oi, oj = i[odometry], j[odometry]
-        inv_w[np.minimum(oi, oj)] = 1.0 / w[odometry]
-        own = (1.0 / w[testable]).astype(np.float32)
-    prefix = np.concatenate([[0.0], np.cumsum(inv_w)[:-1]])
-    pa, pb = prefix[a].astype(np.float32), prefix[b].astype(np.float32)
-    E = E.astype(np.float32)
+    testable, a = loops.testable, loops.a
+    piece = loops.piece
+    E = loops.E.reshape(-1, 9).astype(np.float32)
+    pa, pb = loops.pa.astype(np.float32), loops.pb.astype(np.float32)
+    own = loops.own.astype(np.float32)
     one_piece = bool(np.all(piece[a] == piece[a[0]]))
     # ratio: squared loop angle over its variance for a unit noise scale (0 where the two
     # closures lie on different pieces: never in conflict), a block of rows at a time, in
