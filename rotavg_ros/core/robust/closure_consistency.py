@@ -79,10 +79,11 @@ class ClosureLoops:
     own: FloatArray
 
 
-def _closure_loops(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+def closure_loops(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                    odometry: BoolArray) -> ClosureLoops | None:
     """The loops the closures close over the odometry (:class:`ClosureLoops`); None without
-    odometry."""
+    odometry. :func:`loop_noise_scale` and :func:`consistent_closures` take them (``loops``)
+    where a caller needs both."""
     if not odometry.any():
         return None
     Q, piece = odometry_rotations(num_nodes, i, j, R, odometry)
@@ -104,15 +105,16 @@ def _closure_loops(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: F
 
 
 def loop_noise_scale(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-                     odometry: BoolArray) -> float:
+                     odometry: BoolArray, loops: ClosureLoops | None = None) -> float:
     """The noise scale (per axis of a unit-weight edge, radians) that the loops the closures
     close over the odometry show, whatever any solution says: a true closure's loop angle
     ``theta`` has ``theta^2 ~ sigma^2 (v + own) chi2_3`` (``v`` the odometry variance along
     it), so ``sigma^2`` is the :data:`LOOP_QUANTILE` quantile of ``theta^2 / (v + own)`` over
     that of ``chi2_3``. The lower quantile stands while false closures, whose loops are far
     off, are fewer than about three quarters. NaN with fewer than :data:`LOOP_MIN_CLOSURES`
-    testable closures."""
-    loops = _closure_loops(num_nodes, i, j, R, w, odometry)
+    testable closures. ``loops``: :func:`closure_loops` of these edges, if already known."""
+    if loops is None:
+        loops = closure_loops(num_nodes, i, j, R, w, odometry)
     if loops is None or loops.testable.size < LOOP_MIN_CLOSURES:
         return math.nan
     angle = np.arccos(np.clip((np.trace(loops.E, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
@@ -126,14 +128,16 @@ def loop_noise_scale(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w:
 
 def consistent_closures(
     num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-    odometry: BoolArray, sigmas: Sequence[float],
+    odometry: BoolArray, sigmas: Sequence[float], loops: ClosureLoops | None = None,
 ) -> list[BoolArray]:
     """The edges kept by the pairwise test (module docstring) at each noise scale of
     ``sigmas`` (per axis of a unit-weight edge, radians): every odometry edge, every closure
     the test cannot reach (its ends on different pieces of the chain, or too many closures),
-    and a mutually consistent set of the others."""
+    and a mutually consistent set of the others. ``loops``: :func:`closure_loops` of these
+    edges, if already known."""
     everything = [np.ones(i.size, bool) for _ in sigmas]
-    loops = _closure_loops(num_nodes, i, j, R, w, odometry)
+    if loops is None:
+        loops = closure_loops(num_nodes, i, j, R, w, odometry)
     if loops is None or not 2 <= loops.testable.size <= MAX_CLOSURES:
         return everything
     testable, a = loops.testable, loops.a

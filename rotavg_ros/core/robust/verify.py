@@ -68,7 +68,11 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from rotavg_ros.core.chordal_init import chordal_rotations
 from rotavg_ros.core.filter.edge_filter import tree_rotations
-from rotavg_ros.core.robust.closure_consistency import consistent_closures, loop_noise_scale
+from rotavg_ros.core.robust.closure_consistency import (
+    closure_loops,
+    consistent_closures,
+    loop_noise_scale,
+)
 from rotavg_ros.core.robust.closure_runs import suspect_runs
 from rotavg_ros.core.robust.gauss_newton import (
     ITERATIVE_MIN_DEGREE,
@@ -664,10 +668,11 @@ def consistent_starts(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
     starts: list[tuple[FloatArray, BoolArray]] = []
     seen: list[BoolArray] = []
     sigmas = [sigma * scale for scale in CONSISTENCY_SCALES]
-    loops = loop_noise_scale(num_nodes, i, j, R, w, odometry)
-    if loops < sigmas[-1]:
-        sigmas.append(loops)
-    for keep in consistent_closures(num_nodes, i, j, R, w, odometry, sigmas):
+    loops = closure_loops(num_nodes, i, j, R, w, odometry)
+    scale = loop_noise_scale(num_nodes, i, j, R, w, odometry, loops)
+    if scale < sigmas[-1]:
+        sigmas.append(scale)
+    for keep in consistent_closures(num_nodes, i, j, R, w, odometry, sigmas, loops):
         if keep.all() or any(np.array_equal(keep, k) for k in seen):
             continue
         seen.append(keep)
