@@ -30,7 +30,13 @@ from rotavg_ros.core.robust.l1_choice import (
     decided_early,
     l1_fit,
 )
-from rotavg_ros.core.robust.noise import GAUSSIAN_SHAPE, fit_noise, redundancy, residual_shape
+from rotavg_ros.core.robust.noise import (
+    GAUSSIAN_SHAPE,
+    fit_noise,
+    looks_gaussian,
+    redundancy,
+    residual_shape,
+)
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.robust.verify import (
     chain_tree,
@@ -458,6 +464,36 @@ def test_residual_shape_tells_gaussian_residuals_from_peaked_ones() -> None:
     assert math.isnan(residual_shape(maxwell, np.arange(3000) < 10))  # too few
 
 
+def test_residual_shape_of_vectors_reads_gaussian_noise_larger_about_one_axis() -> None:
+    # The residual angles alone read Gaussian noise larger about one axis (a front end's
+    # heading) as peaked, as a folded angle about a random axis is; the whitened vectors
+    # tell them apart. Noise on one axis only (a planar robot) keeps the angles' verdict.
+    rng = np.random.default_rng(5)
+    n = 3000
+    every = np.ones(n, bool)
+    axes = rng.normal(size=(n, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    folded = axes * np.abs(rng.normal(0.0, 0.05, n))[:, None]
+    cases = {  # name: (residual vectors, Gaussian)
+        "anisotropic": (rng.normal(0.0, 0.02, (n, 3)) * [1.0, 1.0, 3.0], True),
+        "isotropic": (rng.normal(0.0, 0.02, (n, 3)), True),
+        "folded": (folded, False),
+        "folded anisotropic": (folded * [1.0, 1.0, 3.0], False),
+        "planar": (np.c_[np.zeros((n, 2)), rng.normal(0.0, 0.05, n)], False),
+    }
+    for name, (vectors, gaussian) in cases.items():
+        t = np.linalg.norm(vectors, axis=1) / 0.04  # standardized by any one scale
+        assert looks_gaussian(t, every, vectors) is gaussian, name
+    anisotropic = cases["anisotropic"][0]
+    t = np.linalg.norm(anisotropic, axis=1)
+    assert not looks_gaussian(t, every)  # the angles alone: peaked
+    assert residual_shape(t, every, anisotropic) == pytest.approx(0.921, abs=0.01)
+    planar = cases["planar"][0]
+    t = np.linalg.norm(planar, axis=1)
+    assert residual_shape(t, every, planar) == residual_shape(t, every)
+    assert math.isnan(residual_shape(t, np.arange(n) < 10, planar))  # too few
+
+
 def _noisy_strip(n: int, gaussian: bool, false: int, seed: int
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Keyframes k with edges (k, k+1) and (k, k+2) (a strip of triangles) and ``false``
@@ -508,10 +544,12 @@ def test_fits_on_the_verified_inliers_skip_the_filter_where_the_noise_is_not_gau
     assert filtered == {True: 1, False: 2}
     assert error[True] < 0.8 * error[False]
     # Gaussian noise: the re-solve's residuals look Gaussian, least squares is the better
-    # estimator there, and the solve is the one without the option.
+    # estimator there, and the solve is the one without the option: the filter had cut
+    # some of its inliers, so the re-solve stands, with no refit (one filter pass; the cold,
+    # filtered refit it had won the L1 cost at 19.3 deg mean error against 9.2).
     error, filtered = _strip_solves(gaussian=True, seed=2)
-    assert filtered[True] == filtered[False] == 2
-    assert error[True] == error[False]
+    assert filtered[True] == filtered[False] == 1
+    assert error[True] == error[False] < 12.0
 
 
 def _grid(side: int, false_fraction: float, seed: int

@@ -119,29 +119,51 @@ def _crossing(s: float, p: float, cap: float) -> float:
 GAUSSIAN_SHAPE = 0.90
 """Residual angles whose :func:`residual_shape` is at least this look Gaussian: within 0.02
 of a Maxwell distribution's 0.921 (isotropic Gaussian noise per axis; the sampling spread
-of the ratio is about 0.4 / sqrt(n), so 0.02 is two to four standard errors for 400 to
-6,000 residuals). Lower: residuals peaked at zero or heavy-tailed, where an L1 fit beats
-least squares (an angle ``|N(0, s)|`` about a random axis: 0.798; the re-solves' standardized
-residuals on the regime benchmark: 0.84-0.87 under that noise, 0.920-0.923 under Gaussian
-tangent noise; Ellis Island's raw residuals: 0.73)."""
+of the ratio is about 0.097 / sqrt(n): 0.02 is four standard errors at 400 residuals). Lower:
+residuals peaked at zero or heavy-tailed, where an L1 fit beats least squares (an angle
+``|N(0, s)|`` about a random axis: 0.798; the re-solves' standardized residuals on the
+regime benchmark: 0.84-0.87 under that noise, 0.920-0.923 under Gaussian tangent noise;
+Ellis Island's raw residuals: 0.73)."""
+
+RANK_TOLERANCE = 1e-9
+"""An axis of the residual vectors' second-moment matrix with an eigenvalue below this times
+the largest carries no noise (a planar robot's roll and pitch: rounding only)."""
 
 
-def residual_shape(t: FloatArray, inlier: BoolArray) -> float:
+def residual_shape(t: FloatArray, inlier: BoolArray, vectors: FloatArray | None = None,
+                   ) -> float:
     """``mean / RMS`` of the finite residual angles ``t`` of the ``inlier`` edges (NaN when
     fewer than 20): 0.921 for Maxwell-distributed residuals, lower for residuals peaked at
-    zero or heavy-tailed, where an L1 fit beats least squares."""
-    r = np.abs(np.asarray(t, dtype=np.float64)[inlier])
-    r = r[np.isfinite(r)]
+    zero or heavy-tailed, where an L1 fit beats least squares.
+
+    ``vectors``: the ``(E, 3)`` residual rotation vectors whose angles ``t`` standardizes.
+    Where noise shows on all three axes, the shape is then that of the standardized vectors
+    (``t`` along each vector's axis) whitened by their second moment: Gaussian noise larger
+    about one axis (a SLAM front end's heading) then reads 0.921 as isotropic noise does,
+    where its angles read peaked (three times larger: 0.87). Noise on fewer axes (a planar
+    robot's headings) keeps the angles' shape (one axis: 0.798, peaked; see
+    docs/method.md)."""
+    keep = np.asarray(inlier, bool) & np.isfinite(t)
+    r = np.abs(np.asarray(t, dtype=np.float64)[keep])
     if r.size < 20 or not np.any(r > 0):
         return math.nan
+    if vectors is not None:
+        v = np.asarray(vectors, dtype=np.float64)[keep]
+        angle = np.linalg.norm(v, axis=1)
+        v = v * (r / np.where(angle > 0, angle, 1.0))[:, None]  # t along each axis
+        values, axes = np.linalg.eigh(v.T @ v / r.size)
+        if values[0] > RANK_TOLERANCE * values[-1]:
+            r = np.linalg.norm((v @ axes) / np.sqrt(values), axis=1)
     return float(np.mean(r) / math.sqrt(float(np.mean(r * r))))
 
 
-def looks_gaussian(t: FloatArray, inlier: BoolArray) -> bool:
-    """Whether the residual angles ``t`` of the ``inlier`` edges look Gaussian
-    (:func:`residual_shape` at least :data:`GAUSSIAN_SHAPE`; False where it is undefined):
-    least squares is then the better estimator on those edges."""
-    shape = residual_shape(t, inlier)
+def looks_gaussian(t: FloatArray, inlier: BoolArray, vectors: FloatArray | None = None,
+                   ) -> bool:
+    """Whether the residual angles ``t`` of the ``inlier`` edges (with their residual
+    rotation ``vectors``, whitened) look Gaussian (:func:`residual_shape` at least
+    :data:`GAUSSIAN_SHAPE`; False where it is undefined): least squares is then the better
+    estimator on those edges."""
+    shape = residual_shape(t, inlier, vectors)
     return math.isfinite(shape) and shape >= GAUSSIAN_SHAPE
 
 

@@ -77,6 +77,7 @@ from rotavg_ros.core.robust.closure_runs import suspect_runs
 from rotavg_ros.core.robust.gauss_newton import (
     ITERATIVE_MIN_DEGREE,
     WELL_CONNECTED,
+    edge_residuals,
     prediction_variance,
     refine_least_squares,
     residual_angles,
@@ -180,13 +181,13 @@ class VerifyOutcome:
     """Edges the noise model fitted to the kept solution's own residuals classifies as
     inliers (with the trusted ones): for ``dmf``, the filter's edges minus those the DMF
     solution itself shows to be outliers."""
-    resolve_t: FloatArray
-    """Standardized residuals of the re-solve's final fit (NaN: undetermined)."""
     restarted: bool = False
     """The kept re-solve came from :func:`least_squares_from_relaxation` (False for ``dmf``)."""
     runs_left_out: int = 0
     """Runs of loop closures the re-solve left out as wholes (:mod:`.closure_runs`), whichever
     solution is kept."""
+    resolve_gaussian: bool = False
+    """The re-solve's residuals look Gaussian (:attr:`RobustSolve.gaussian`)."""
 
 
 def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> BoolArray:
@@ -439,6 +440,10 @@ class RobustSolve:
     them better (:func:`least_squares_from_relaxation`)."""
     runs_left_out: int = 0
     """Runs of loop closures the tight pass left out as wholes (:mod:`.closure_runs`)."""
+    gaussian: bool = False
+    """The final fit's standardized inlier residuals look Gaussian on the axes they span
+    (:func:`~.noise.looks_gaussian` with their rotation vectors): least squares is then the
+    better estimator."""
 
 
 def verify(
@@ -614,8 +619,9 @@ def robust_resolve(
         rot = restarted
         noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold, tree)
         cap = _cap(noise, initial_threshold)
+    gaussian = looks_gaussian(t, inlier, edge_residuals(rot, i, j, R))
     return RobustSolve(rot, inlier, noise, t, cap, known, tree, start, relocalized,
-                       restarted is not None, runs_left_out)
+                       restarted is not None, runs_left_out, gaussian)
 
 
 def _leave_runs_out(
@@ -727,7 +733,7 @@ def choose(
     that lowers its cost) or the robust re-solve, by the truncated L1 cost over every
     edge; the DMF solution stands unless the re-solve is ``margin`` (relative) better.
     Where the re-solve's standardized inlier residuals look Gaussian
-    (:func:`~.noise.looks_gaussian`) the margin goes the other way: least squares is the
+    (:attr:`RobustSolve.gaussian`) the margin goes the other way: least squares is the
     better estimator there, and an L1 cost favours the L1 fit, so the re-solve stands
     unless the DMF solution is ``margin`` better. Where the re-solve's inliers have a
     redundancy (:func:`~.noise.redundancy`) below ``least_squares_below`` (an odometry chain
@@ -768,7 +774,7 @@ def choose(
         for name, rotations in (("robust", robust.rotations), ("dmf", dmf_rotations)):
             costs[f"{name}_squares"] = truncated_squares(rotations, i, j, R, w, cap, known)
         dmf_stands = costs["dmf_squares"] < (1.0 - margin) * costs["robust_squares"]
-    elif looks_gaussian(robust.t, robust.inlier):
+    elif robust.gaussian:
         dmf_stands = costs["dmf"] < (1.0 - margin) * costs["robust"]
     else:
         dmf_stands = not costs["robust"] < (1.0 - (0.0 if dmf_moves else margin)) * costs["dmf"]
@@ -778,14 +784,14 @@ def choose(
                                                      max_threshold, tree)
     return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, robust.start,
                          int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known,
-                         classified | known, robust.t,
-                         runs_left_out=robust.runs_left_out)
+                         classified | known, runs_left_out=robust.runs_left_out,
+                         resolve_gaussian=robust.gaussian)
 
 
 def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutcome:
     """The outcome where the robust re-solve is kept."""
     return VerifyOutcome(robust.rotations, robust.inlier, robust.noise, "robust", costs,
                          robust.start, int(np.sum(np.isnan(robust.t) & ~robust.tree)),
-                         robust.cap, robust.relocalized, robust.known, robust.inlier, robust.t,
-                         robust.restarted, robust.runs_left_out)
+                         robust.cap, robust.relocalized, robust.known, robust.inlier,
+                         robust.restarted, robust.runs_left_out, robust.gaussian)
 
