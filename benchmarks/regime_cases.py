@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -456,6 +456,21 @@ def weighted_case(name: str, base: RegimeCase, *, odo_noise_deg: float,
     return RegimeCase(name, base.family, base.num_nodes, base.i, base.j, R, base.gt,
                       1.0 / np.radians(sigma) ** 2, base.inlier,
                       max(odo_noise_deg, loop_noise_deg), desc, max(loop_noise_deg, 1.0))
+
+
+def unweighted_case(name: str, base: RegimeCase, *, odo_noise_deg: float,
+                    loop_noise_deg: float, seed: int = 0,
+                    noise_model: str = "folded") -> RegimeCase:
+    """:func:`weighted_case`'s measurements sent without their weights, as a front end that
+    reports no covariances sends them: every edge at weight 1 (GNC-TLS gets the larger of the
+    two noise levels). What this tests: odometry far more precise than the loop closures,
+    which nothing in the input says."""
+    case = weighted_case(name, base, odo_noise_deg=odo_noise_deg,
+                         loop_noise_deg=loop_noise_deg, seed=seed, noise_model=noise_model)
+    desc = (f"unweighted: {base.description or base.name}, odometry {odo_noise_deg:g} deg, "
+            f"loop closures {loop_noise_deg:g} deg, every weight 1")
+    return replace(case, weight=None, description=desc,
+                   sigma_deg=max(odo_noise_deg, loop_noise_deg, 1.0))
 
 
 # ------------------------------------------------------- chains in pieces, revisited routes

@@ -1,6 +1,6 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Thirty-four cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+Thirty-eight cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
 with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
@@ -12,7 +12,9 @@ and false closures in heading only; on the chain, false closures from 10 deg off
 10 and 20 deg of heading noise) on the edges of suite cases; and six weighted graphs, as a
 SLAM front end reports them (odometry at 0.5 deg, loop closures at 3 deg, each edge
 weighted by its information ``1 / sigma^2``; :func:`~benchmarks.regime_cases.weighted_case`)
-on suite topologies with false closures. They look
+on suite topologies with false closures; and four of those measurements sent without their
+weights (every weight 1, as a front end that reports no covariances sends them;
+:func:`~benchmarks.regime_cases.unweighted_case`). They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
 ``paper`` profile (ours, the oracle, every installed peer) as the suite does
@@ -47,6 +49,7 @@ from benchmarks.regime_cases import (
     planar_case,
     revisit_case,
     slam_case,
+    unweighted_case,
     weighted_case,
 )
 from benchmarks.regimes import (
@@ -80,6 +83,10 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                **extra: Any) -> Callable[[], RegimeCase]:
         return lambda: planar_case(name, base(), odo_noise_deg=odo, loop_noise_deg=loop,
                                    seed=seed, **extra)
+
+    def unweighted(name: str, base: Callable[[], RegimeCase]) -> Callable[[], RegimeCase]:
+        return lambda: unweighted_case(name, base(), odo_noise_deg=0.5, loop_noise_deg=3.0,
+                                       seed=seed, noise_model=model)
 
     def weighted(name: str, base: Callable[[], RegimeCase]) -> Callable[[], RegimeCase]:
         return lambda: weighted_case(name, base(), odo_noise_deg=0.5, loop_noise_deg=3.0,
@@ -138,6 +145,14 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                  slam("slam/parking-garage/grouped", "parking-garage", groups=10)),
         weighted("stress/weighted/sphere2500/rand10",
                  slam("slam/sphere2500/rand10", "sphere2500", random_false=0.10)),
+        unweighted("stress/unweighted/smallGrid3D/rand10",
+                   slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10)),
+        unweighted("stress/unweighted/parking-garage/clean",
+                   slam("slam/parking-garage/noise1", "parking-garage")),
+        unweighted("stress/unweighted/parking-garage/rand10",
+                   slam("slam/parking-garage/rand10", "parking-garage", random_false=0.10)),
+        unweighted("stress/unweighted/sphere2500/rand10",
+                   slam("slam/sphere2500/rand10", "sphere2500", random_false=0.10)),
         weighted("stress/weighted/torus3D/rand10",
                  slam("slam/torus3D/rand10", "torus3D", random_false=0.10)),
         weighted("stress/weighted/chain/1000/rand30",

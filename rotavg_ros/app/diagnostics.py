@@ -70,6 +70,7 @@ def diagnostic_values(
             "trusted_odometry_edges": result.num_trusted_odometry,
             "verification": result.verification or "off",
             "noise_sigma_deg": result.noise_sigma_deg,
+            "odometry_weight": result.odometry_weight,
             "untested_loop_closures": result.num_untested,
             "depth": result.depth,
             "residual_median_deg": median,

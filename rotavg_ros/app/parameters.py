@@ -124,6 +124,13 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         "chain at least 90% of the frames of a sparse graph; an SfM view graph: none).",
         choices=("auto", "consecutive", "none")),
     ParameterSpec(
+        "class_noise", _SOLVER.verify.class_noise,
+        "Where every edge arrives at the same weight (the front end sends no covariances) "
+        "and the graph has odometry: the default profile estimates one noise scale for the "
+        "odometry and one for the loop closures and, where they differ beyond doubt, solves "
+        "again with the odometry weighted by their ratio (diagnostic odometry_weight). "
+        "false: equal weights stay equal."),
+    ParameterSpec(
         "mode", _SOLVER.mode,
         "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "
         "L-BFGS, for chain-like SLAM graphs) or auto (by mean degree).",
@@ -253,6 +260,7 @@ def solver_options_from_parameters(p: Mapping[str, Any]) -> SolverOptions:
         str(p["profile"]),
         mode=str(p["mode"]),
         odometry=str(p["odometry"]),
+        class_noise=bool(p["class_noise"]),
         depths=tuple(int(d) for d in p["depths"]),
         iterations=int(p["iterations"]),
         sigma=float(p["sigma"]),

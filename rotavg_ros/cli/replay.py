@@ -105,6 +105,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
         "profile": args.profile,
         "mode": args.mode,
         "odometry": args.odometry,
+        "class_noise": not args.no_class_noise,
         "warm_start": not args.no_warm_start,
         "depths": list(options.dense.depths),
     })

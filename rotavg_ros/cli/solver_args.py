@@ -24,6 +24,12 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    "consecutive (nodes adjacent in file / arrival order), none, or auto "
                    "(consecutive when they chain >= 90%% of the nodes of a sparse graph) "
                    "(default %(default)s)")
+    g.add_argument("--no-class-noise", action="store_true",
+                   help="keep equal weights equal: by default, where every edge has the same "
+                   "weight and the graph has odometry, the default profile estimates one "
+                   "noise scale for the odometry and one for the loop closures and, where "
+                   "they differ beyond doubt, solves again with the odometry weighted by "
+                   "their ratio")
     g.add_argument("--mode", default=d.mode, choices=("auto", "dense", "sparse"),
                    help="dense: the paper's DMF; sparse: chordal start + Huber + L-BFGS for "
                    "chain-like SLAM graphs; auto: by mean degree (default %(default)s)")
@@ -66,7 +72,8 @@ def options_from_args(args: argparse.Namespace) -> SolverOptions:
     progress = None if getattr(args, "quiet", False) else say
     return SolverOptions.for_profile(
         getattr(args, "profile", "default"),
-        mode=args.mode, odometry=getattr(args, "odometry", "auto"), depths=depths,
+        mode=args.mode, odometry=getattr(args, "odometry", "auto"),
+        class_noise=not getattr(args, "no_class_noise", False), depths=depths,
         iterations=args.iterations, tolerance=args.tolerance,
         dtype=args.dtype, lr=args.lr, sigma=args.sigma,
         seed=args.seed, device=args.device,

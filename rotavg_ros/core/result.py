@@ -71,6 +71,11 @@ class SolveResult:
     """Depth candidates the candidate race stopped early (largest component; option
     ``prune_ratio``): never chosen; their ``cost_by_depth`` is of the unfinished fit and
     their ``iterations_by_depth`` where they stopped."""
+    odometry_weight: float = 1.0
+    """Weight the odometry edges were given relative to the loop closures, estimated from
+    the solution's inliers where every input edge had the same weight and the two classes'
+    noise differed beyond doubt (largest component; option ``class_noise``,
+    :mod:`rotavg_ros.core.robust.class_noise`); 1 where not used."""
 
 
 def components_warning(result: SolveResult) -> str | None:

@@ -33,6 +33,7 @@ from rotavg_ros.core.dmf.sparse import shows_outliers
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.robust.class_noise import class_noise
 from rotavg_ros.core.robust.l1_choice import choose_by_cross_validation
 from rotavg_ros.core.robust.noise import redundancy
 from rotavg_ros.core.robust.verify import (
@@ -79,6 +80,12 @@ class ComponentSolution:
     """Depth candidates the candidate race stopped early (never chosen)."""
     runs_left_out: int = 0
     """Runs of loop closures the verification's re-solve left out as wholes."""
+    odometry_weight: float = 1.0
+    """Weight of the odometry edges relative to the loop closures that the solution was
+    fitted with, estimated from the data (option ``class_noise``); 1 where not used."""
+    inlier_threshold: float = math.inf
+    """The verification's inlier threshold on standardized residuals (radians of a
+    unit-weight edge; inf: not run)."""
 
 
 READMITTED_SHARE = 0.05
@@ -207,6 +214,7 @@ class RotationAverager:
             duration_s=out.duration_s,
             iterations_by_depth=out.iterations_by_depth,
             pruned_depths=out.pruned_depths,
+            odometry_weight=out.odometry_weight,
         )
 
     def solve_component(
@@ -216,7 +224,35 @@ class RotationAverager:
         """Solve one connected graph in local indices; node 0 is the anchor.
 
         ``initial`` (n, 3, 3) world-to-node rotations with NaN rows for unknown nodes.
+        Where every edge has the same weight, the graph has odometry and the solution's
+        inliers show the odometry's noise and the loop closures' differ beyond doubt
+        (option ``class_noise``), it is solved again with the odometry weighted by their
+        ratio.
         """
+        sol = self._solve_once(n, i, j, R, w, initial, initial_depth)
+        opt = self.options
+        if not (opt.verify.enabled and opt.verify.class_noise and sol.verification
+                and sol.verification != "failed" and i.size and np.ptp(w) == 0.0):
+            return sol
+        if redundancy(n, sol.kept) < opt.verify.least_squares_below_redundancy:
+            return sol  # chain-like: a few units of redundancy, closures that may be false
+        odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
+        scales = class_noise(sol.rotations, i, j, R, np.ones(i.size), sol.kept, odometry,
+                             cut=sol.inlier_threshold, seed=opt.runtime.seed)
+        if scales is None or not scales.significant:
+            return sol
+        self._say(f"noise per edge class: odometry {1.0 / math.sqrt(scales.factor):.2f} x the "
+                  f"loop closures' (at equal weights {scales.z:.1f} standard errors apart); "
+                  f"solving again with the odometry weighted {scales.factor:.3g} x")
+        again = self._solve_once(n, i, j, R, np.where(odometry, scales.factor, 1.0),
+                                 initial, initial_depth)
+        return replace(again, odometry_weight=scales.factor)
+
+    def _solve_once(
+        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+        initial: FloatArray | None = None, initial_depth: int | None = None,
+    ) -> ComponentSolution:
+        """:meth:`solve_component` at the weights ``w`` as given."""
         opt = self.options
         w = w / np.mean(w)
         tree_rot: FloatArray | None = None
@@ -312,8 +348,9 @@ class RotationAverager:
         # Sparse mode: more than READMITTED_SHARE of the edges the kept DMF solution is
         # judged by were not in its fit (the filter removed them, the verification
         # re-admitted them).
-        readmitted = bool(opt.verify.refit_readmitted and np.count_nonzero(inlier & ~dmf_kept)
-                          > READMITTED_SHARE * np.count_nonzero(dmf_kept))
+        unfitted = int(np.count_nonzero(inlier & ~dmf_kept))  # judged by, not fitted to
+        readmitted = bool(opt.verify.refit_readmitted
+                          and unfitted > READMITTED_SHARE * np.count_nonzero(dmf_kept))
         if out.chosen == "robust":
             if (inlier_fit is None and not resolve_only
                     and not self._least_squares_stands(out, kept)
@@ -343,8 +380,8 @@ class RotationAverager:
             final = self._refit_dmf(n, i, j, R, w, inlier, out.rotations, out.cap,
                                     tolerance=math.inf if readmitted else REFIT_TOLERANCE,
                                     warm=True, unfiltered=opt.verify.refit_from_resolve)
-        elif (not sparse and opt.verify.refit_readmitted and np.count_nonzero(inlier & ~dmf_kept)
-              > DENSE_UNFITTED_SHARE * np.count_nonzero(inlier)):
+        elif (not sparse and opt.verify.refit_readmitted
+              and unfitted > DENSE_UNFITTED_SHARE * np.count_nonzero(inlier)):
             # Many of the edges the kept DMF solution is judged by were not in its fit (the
             # filter removed them, the verification re-admitted them): fit it again on
             # them, briefly, from where it stands.
@@ -381,7 +418,8 @@ class RotationAverager:
         return ComponentSolution(final, inlier, best, costs, iterations, kept,
                                  out.noise.sigma_deg, kept_solution, out.untested,
                                  out.relocalized, trusted, pruned,
-                                 runs_left_out=out.runs_left_out)
+                                 runs_left_out=out.runs_left_out,
+                                 inlier_threshold=out.noise.threshold)
 
     def _fit_dmf(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool,
@@ -744,6 +782,9 @@ class ArraySolution:
     """Depth candidates the candidate race stopped early (largest component)."""
     runs_left_out: int = 0
     """Runs of loop closures the verification left out as wholes, over all components."""
+    odometry_weight: float = 1.0
+    """Weight of the odometry relative to the loop closures estimated from the data (largest
+    component; option ``class_noise``); 1 where not used."""
 
 
 def average_rotations(
@@ -773,7 +814,7 @@ def average_rotations(
     depth, costs, iterations, best_size = 0, {}, {}, 0
     pruned: tuple[int, ...] = ()
     noise, verification, untested, relocalized, trusted = math.nan, "", 0, 0, 0
-    runs_left_out = 0
+    runs_left_out, odometry_weight = 0, 1.0
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
         if label == 0 and anchor in nodes:
@@ -802,9 +843,11 @@ def average_rotations(
             depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
             iterations, pruned = sol.iterations_by_depth, sol.pruned_depths
             noise, verification = sol.noise_sigma_deg, sol.verification
+            odometry_weight = sol.odometry_weight
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
                          time.perf_counter() - t0, iterations, filter_kept, noise,
-                         verification, untested, relocalized, trusted, pruned, runs_left_out)
+                         verification, untested, relocalized, trusted, pruned, runs_left_out,
+                         odometry_weight)
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:
