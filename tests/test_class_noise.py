@@ -82,6 +82,18 @@ def test_class_noise_changes_nothing_at_equal_noise_or_given_weights():
     assert res.odometry_weight == 1.0
 
 
+def test_class_noise_reads_weights_that_do_not_tell_the_classes_apart():
+    # Pairs measured twice, merged by the node at weight 2: the median weight of both
+    # classes stays 1, so the weights still say nothing about odometry against closures.
+    case = _chain(0.5, 3.0)
+    loops = np.flatnonzero(~case.odometry)
+    merged = dataclasses.replace(case, weight=np.where(np.isin(np.arange(case.num_edges),
+                                                               loops[:10]), 2.0, 1.0))
+    res, on = _solve(merged)
+    _, off = _solve(merged, class_noise=False)
+    assert res.odometry_weight > 10.0 and on.median_deg < 0.7 * off.median_deg
+
+
 def test_diagnostics_report_the_odometry_weight():
     case = _chain(0.5, 3.0)
     res, _ = _solve(case)

@@ -125,11 +125,12 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         choices=("auto", "consecutive", "none")),
     ParameterSpec(
         "class_noise", _SOLVER.verify.class_noise,
-        "Where every edge arrives at the same weight (the front end sends no covariances) "
-        "and the graph has odometry: the default profile estimates one noise scale for the "
+        "Where the weights do not tell odometry from loop closures (the same median weight "
+        "in both: no covariances sent) and the graph has odometry: the default profile "
+        "estimates one noise scale for the "
         "odometry and one for the loop closures and, where they differ beyond doubt, solves "
         "again with the odometry weighted by their ratio (diagnostic odometry_weight). "
-        "false: equal weights stay equal."),
+        "false: the weights stay as given."),
     ParameterSpec(
         "mode", _SOLVER.mode,
         "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "

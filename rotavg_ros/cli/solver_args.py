@@ -25,8 +25,9 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    "(consecutive when they chain >= 90%% of the nodes of a sparse graph) "
                    "(default %(default)s)")
     g.add_argument("--no-class-noise", action="store_true",
-                   help="keep equal weights equal: by default, where every edge has the same "
-                   "weight and the graph has odometry, the default profile estimates one "
+                   help="keep the weights as given: by default, where they do not tell the "
+                   "odometry from the loop closures (the same median weight in both, e.g. "
+                   "no covariances), the default profile estimates one "
                    "noise scale for the odometry and one for the loop closures and, where "
                    "they differ beyond doubt, solves again with the odometry weighted by "
                    "their ratio")

@@ -319,15 +319,16 @@ class VerifyOptions:
     odometry is rarely wrong, and a group of consistent false closures can outvote the few
     edges that cross a weakly connected part of the graph, unless those edges are trusted."""
     class_noise: bool = field(default=True, metadata=_flat("class_noise"))
-    """Where every input edge has the same weight (the front end reported no covariances)
-    and the graph has odometry (``odometry``): estimate one noise scale for the odometry and
+    """Where the weights do not tell the odometry (``odometry``) from the loop closures (the
+    same median weight in both: a front end that reports no covariances, pairs measured
+    twice merged at weight 2): estimate one noise scale for the odometry and
     one for the loop closures from the solution's inliers (variance components,
     :mod:`rotavg_ros.core.robust.class_noise`) and, where they differ beyond doubt, solve
     again with the odometry weighted by their ratio. A front end's odometry is usually far
     more precise than its loop closures; with equal weights least squares spreads each
     loop's misclosure over both alike (parking-garage, odometry at 0.5 deg and closures at
-    3 deg, unweighted: 2.45 -> 1.28 deg median; docs/benchmarks.md). Given weights are
-    trusted as they are. Off: equal weights stay equal."""
+    3 deg, unweighted: 2.55 -> 1.38 deg median; docs/benchmarks.md). Weights that differ
+    between the classes are trusted as they are. Off: the weights stay as given."""
 
 
 @dataclass

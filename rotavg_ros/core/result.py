@@ -72,8 +72,8 @@ class SolveResult:
     ``prune_ratio``): never chosen; their ``cost_by_depth`` is of the unfinished fit and
     their ``iterations_by_depth`` where they stopped."""
     odometry_weight: float = 1.0
-    """Weight the odometry edges were given relative to the loop closures, estimated from
-    the solution's inliers where every input edge had the same weight and the two classes'
+    """Factor on the odometry edges' weights relative to the loop closures', estimated from
+    the solution's inliers where the input weights did not tell the two apart and their
     noise differed beyond doubt (largest component; option ``class_noise``,
     :mod:`rotavg_ros.core.robust.class_noise`); 1 where not used."""
 

@@ -224,27 +224,31 @@ class RotationAverager:
         """Solve one connected graph in local indices; node 0 is the anchor.
 
         ``initial`` (n, 3, 3) world-to-node rotations with NaN rows for unknown nodes.
-        Where every edge has the same weight, the graph has odometry and the solution's
-        inliers show the odometry's noise and the loop closures' differ beyond doubt
-        (option ``class_noise``), it is solved again with the odometry weighted by their
-        ratio.
+        Where the weights do not tell the odometry from the loop closures (the same median
+        weight in both: every edge at weight 1, or pairs measured twice merged at weight 2),
+        the graph has odometry and the solution's inliers show the two classes' noise
+        differ beyond doubt (option ``class_noise``), it is solved again with the odometry's
+        weights multiplied by their ratio.
         """
         sol = self._solve_once(n, i, j, R, w, initial, initial_depth)
         opt = self.options
         if not (opt.verify.enabled and opt.verify.class_noise and sol.verification
-                and sol.verification != "failed" and i.size and np.ptp(w) == 0.0):
+                and sol.verification != "failed" and i.size):
             return sol
+        odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
+        if not (odometry.any() and (~odometry).any()
+                and np.median(w[odometry]) == np.median(w[~odometry])):
+            return sol  # no odometry, or weights that tell the two apart: trusted as given
         if redundancy(n, sol.kept) < opt.verify.least_squares_below_redundancy:
             return sol  # chain-like: a few units of redundancy, closures that may be false
-        odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
-        scales = class_noise(sol.rotations, i, j, R, np.ones(i.size), sol.kept, odometry,
+        scales = class_noise(sol.rotations, i, j, R, w / np.mean(w), sol.kept, odometry,
                              cut=sol.inlier_threshold, seed=opt.runtime.seed)
         if scales is None or not scales.significant:
             return sol
         self._say(f"noise per edge class: odometry {1.0 / math.sqrt(scales.factor):.2f} x the "
                   f"loop closures' (at equal weights {scales.z:.1f} standard errors apart); "
                   f"solving again with the odometry weighted {scales.factor:.3g} x")
-        again = self._solve_once(n, i, j, R, np.where(odometry, scales.factor, 1.0),
+        again = self._solve_once(n, i, j, R, w * np.where(odometry, scales.factor, 1.0),
                                  initial, initial_depth)
         return replace(again, odometry_weight=scales.factor)
 
