@@ -1,4 +1,4 @@
-"""One noise scale for the odometry, one for the loop closures, where the input gave none.
+"""One noise scale for the odometry, one for the loop closures, where the weights say none.
 
 A SLAM front end that reports no covariances sends every edge at the same weight, yet its
 odometry is usually far more precise than its loop closures. Least squares (and the DMF's
@@ -63,7 +63,7 @@ class ClassNoise:
     ``ratio``: the first fit's ``s_odometry^2 / s_loop^2`` (equal weights, or the weights
     given); ``z``: its log in standard errors; ``significant``: ``z`` above
     :data:`SIGNIFICANCE_Z`; ``factor``: where significant, the weight multiplier of the
-    odometry edges once the refits settled (the product of the ratios' inverses), else 1."""
+    odometry edges at which the refits' ratio settled, else 1."""
 
     ratio: float
     z: float
