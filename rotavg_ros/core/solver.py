@@ -230,12 +230,12 @@ class RotationAverager:
         differ beyond doubt (option ``class_noise``), it is solved again with the odometry's
         weights multiplied by their ratio.
         """
-        sol = self._solve_once(n, i, j, R, w, initial, initial_depth)
         opt = self.options
+        odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
+        sol = self._solve_once(n, i, j, R, w, odometry, initial, initial_depth)
         if not (opt.verify.enabled and opt.verify.class_noise and sol.verification
                 and sol.verification != "failed" and i.size):
             return sol
-        odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
         if not (odometry.any() and (~odometry).any()
                 and np.median(w[odometry]) == np.median(w[~odometry])):
             return sol  # no odometry, or weights that tell the two apart: trusted as given
@@ -249,14 +249,16 @@ class RotationAverager:
                   f"loop closures' (at equal weights {scales.z:.1f} standard errors apart); "
                   f"solving again with the odometry weighted {scales.factor:.3g} x")
         again = self._solve_once(n, i, j, R, w * np.where(odometry, scales.factor, 1.0),
-                                 initial, initial_depth)
+                                 odometry, initial, initial_depth)
         return replace(again, odometry_weight=scales.factor)
 
     def _solve_once(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-        initial: FloatArray | None = None, initial_depth: int | None = None,
+        odometry: BoolArray, initial: FloatArray | None = None,
+        initial_depth: int | None = None,
     ) -> ComponentSolution:
-        """:meth:`solve_component` at the weights ``w`` as given."""
+        """:meth:`solve_component` at the weights ``w`` as given; ``odometry`` marks the
+        edges trusted as odometry (:func:`~.robust.verify.odometry_edges`)."""
         opt = self.options
         w = w / np.mean(w)
         tree_rot: FloatArray | None = None
@@ -277,7 +279,6 @@ class RotationAverager:
         sparse = self.is_sparse(n, fi.size)
         self._say(f"{'sparse' if sparse else 'dense'} mode: {n} nodes, {fi.size} edges")
         starts = {} if tree_rot is None else {"tree": tree_rot}  # the filter's tree
-        odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
         robust: RobustSolve | None = None  # the verification's re-solve, run first
         inlier_fit: ComponentSolution | None = None
         resolve_only = False  # robust first, and no DMF fit: the re-solve is the answer
