@@ -64,13 +64,15 @@ def irls(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
 
 
 def cross_validation(start: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
-                     w: FloatArray, eps: float, folds: IntArray) -> float | None:
-    """Held-out ``sum w (r_L1^2 - r_LS^2)`` over the folds (negative: L1 predicts better);
-    None where a fold leaves the graph in pieces (a singular normal matrix)."""
+                     w: FloatArray, median: float, folds: IntArray) -> float | None:
+    """Held-out ``sum w (r_L1^2 - r_LS^2)`` over the folds (negative: L1 predicts better;
+    ``median``: the least-squares median standardized residual, whose fraction
+    ``L1_FLOOR`` is the L1 fit's floor); None where a fold leaves the graph in pieces (a
+    singular normal matrix)."""
     total = 0.0
     for k in range(int(folds.max()) + 1):
         try:  # the solver's fold (rotavg_ros.core.robust.l1_choice), on these fold labels
-            total += held_out_difference(start, i, j, R, w, eps, folds == k)
+            total += held_out_difference(start, i, j, R, w, median, folds == k)
         except RuntimeError:  # SuperLU: exactly singular
             return None
     return total
@@ -165,7 +167,7 @@ def _cross_validate(shared: Path, args: argparse.Namespace) -> int:
             rand = np.random.default_rng(1).integers(0, 10, i.size)
             cells = []
             for folds in (rand, off_tree_folds(case.num_nodes, i, j, r, 5)):
-                d = cross_validation(ls, i, j, R, w, eps, folds)
+                d = cross_validation(ls, i, j, R, w, float(np.median(np.sqrt(w) * r)), folds)
                 cells.append("n/a" if d is None else
                              f"{'L1' if d < 0 else 'LS'} ({d / float(np.sum(w * r ** 2)):+.3f})")
             print(f"| {seed} | {name} | {m_ls:.3f} / {m_l1:.3f} | "

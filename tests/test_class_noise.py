@@ -62,12 +62,18 @@ def test_class_noise_says_nothing_where_the_loop_closures_have_little_redundancy
 def test_default_profile_weights_precise_odometry_where_the_input_has_no_weights(seed):
     case = _chain(0.5, 3.0, seed=seed)
     res, on = _solve(case)
-    off_res, off = _solve(case, class_noise=False)
+    off_res, off = _solve(case, class_noise=False, l1_by_cross_validation=False)
     assert res.odometry_weight > 10.0 and off_res.odometry_weight == 1.0
     # Least squares at equal weights spreads each loop's misclosure over the precise
-    # odometry too (measured: 1.56 -> 0.91 deg median at seed 0).
+    # odometry too (measured: 1.20 -> 0.76 deg median at seed 0,
+    # 1.25 -> 0.80 at seed 1).
     assert on.median_deg < 0.7 * off.median_deg
     assert on.mean_deg < 0.7 * off.mean_deg
+    # Without class noise the cross-validation now reaches this graph (a spanning tree in
+    # every fold) and takes a Huber fit, which caps the closures' larger residuals: part
+    # of the way (measured 1.08 and 1.10 deg).
+    _, huber = _solve(case, class_noise=False)
+    assert on.median_deg < huber.median_deg < off.median_deg
 
 
 def test_class_noise_changes_nothing_at_equal_noise_or_given_weights():

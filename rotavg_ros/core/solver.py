@@ -39,6 +39,7 @@ from rotavg_ros.core.robust.noise import redundancy
 from rotavg_ros.core.robust.verify import (
     RobustSolve,
     VerifyOutcome,
+    chain_tree,
     choose,
     connects_all,
     odometry_edges,
@@ -393,19 +394,23 @@ class RotationAverager:
             final = self._refit_dmf(n, i, j, R, w, inlier, out.rotations, out.cap,
                                     warm=True, unfiltered=True)
         refitted = final is not out.rotations
-        l1 = False
+        estimator = ""
         if (sparse and opt.verify.l1_by_cross_validation and n <= opt.verify.l1_max_nodes
                 and redundancy(n, inlier) >= chain_like):
-            verdict = choose_by_cross_validation(final, i[inlier], j[inlier], R[inlier],
-                                                 w[inlier], seed=opt.runtime.seed)
-            self._say("cross-validation: no verdict (the kept solution is not least squares, "
-                      "or a fold splits the inliers)" if np.isnan(verdict.held_out_change)
-                      else f"cross-validation: {'L1' if verdict.l1_better else 'least squares'}"
+            ii, jj, ww = i[inlier], j[inlier], w[inlier]
+            verdict = choose_by_cross_validation(final, ii, jj, R[inlier], ww,
+                                                 seed=opt.runtime.seed,
+                                                 tree=chain_tree(n, ii, jj, ww))
+            self._say("cross-validation: no verdict (the kept solution is not least squares)"
+                      if np.isnan(verdict.held_out_change)
+                      else f"cross-validation: {verdict.estimator}"
                       f" (held-out change {verdict.held_out_change:+.3f}, "
-                      f"{verdict.folds_run} folds)")
-            if verdict.l1_better:  # (else the kept solution stands as it is)
-                final, l1 = verdict.rotations, True
-        if out.chosen == "robust" or refitted or l1 or out.relocalized:  # (the anchor may move)
+                      f"{verdict.folds_run} folds"
+                      f"{', a spanning tree in every fold' if verdict.tree_kept else ''})")
+            if verdict.replaced:  # (else the kept solution stands as it is)
+                final, estimator = verdict.rotations, verdict.estimator
+        if out.chosen == "robust" or refitted or estimator or out.relocalized:
+            # (the anchor may have moved)
             final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
             final[0] = np.eye(3)
         trusted = int(out.known.sum())
@@ -418,8 +423,8 @@ class RotationAverager:
                   f"edges outside, {trusted} odometry edges trusted, {out.relocalized} nodes "
                   f"relocalized, {out.runs_left_out} runs of loop closures left out")
         kept_solution = "dmf_refit" if out.chosen == "robust" and refitted else out.chosen
-        if l1:
-            kept_solution += "+l1"
+        if estimator:
+            kept_solution += f"+{estimator}"
         return ComponentSolution(final, inlier, best, costs, iterations, kept,
                                  out.noise.sigma_deg, kept_solution, out.untested,
                                  out.relocalized, trusted, pruned,
