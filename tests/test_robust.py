@@ -806,6 +806,13 @@ def _noisy_graph(n: int, peaked: bool, rng: np.random.Generator,
     a, b = rng.integers(0, n, 3 * n), rng.integers(0, n, 3 * n)
     i = np.concatenate([np.arange(n - 1), a[a != b]])
     j = np.concatenate([np.arange(1, n), b[a != b]])
+    return _measured(i, j, n, peaked, rng)
+
+
+def _measured(i: np.ndarray, j: np.ndarray, n: int, peaked: bool, rng: np.random.Generator,
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Random true rotations of ``n`` nodes and the edges' measurements, with the noise of
+    :func:`_noisy_graph`: ``(i, j, R, truth)``."""
     truth = random_rotations(n, rng)
     if peaked:
         angle = np.radians(np.where(rng.random(i.size) < 0.6, 0.2, 6.0))
@@ -927,16 +934,7 @@ def _chain_with_closures(peaked: bool, seed: int) -> tuple[np.ndarray, ...]:
     b = a + rng.integers(5, 10, 40)
     i = np.concatenate([np.arange(n - 1), a])
     j = np.concatenate([np.arange(1, n), b])
-    truth = random_rotations(n, rng)
-    if peaked:
-        angle = np.radians(np.where(rng.random(i.size) < 0.6, 0.2, 6.0))
-        axis = rng.standard_normal((i.size, 3))
-        v = axis / np.linalg.norm(axis, axis=1)[:, None] * (angle * np.abs(
-            rng.standard_normal(i.size)))[:, None]
-    else:
-        v = rng.normal(0.0, np.radians(3.0), (i.size, 3))
-    R = np.einsum("eab,ebc,edc->ead", exp_map(v), truth[i], truth[j])
-    return i, j, R, truth
+    return _measured(i, j, n, peaked, rng)
 
 
 @pytest.mark.parametrize(("peaked", "seed"), [(True, 2), (False, 0)])
