@@ -401,7 +401,8 @@ class RotationAverager:
             verdict = choose_by_cross_validation(final, ii, jj, R[inlier], ww,
                                                  seed=opt.runtime.seed,
                                                  tree=chain_tree(n, ii, jj, ww))
-            self._say("cross-validation: no verdict (the kept solution is not least squares)"
+            self._say("cross-validation: no verdict (the kept solution is not least squares, "
+                      "or the inliers do not join every node)"
                       if np.isnan(verdict.held_out_change)
                       else f"cross-validation: {verdict.estimator}"
                       f" (held-out change {verdict.held_out_change:+.3f}, "

@@ -175,12 +175,13 @@ def choose_by_cross_validation(
     def splits() -> bool:
         return not all(_connected(n, i[label != k], j[label != k]) for k in range(folds))
 
+    split = median > 0 and splits()
     alternative, tree_kept = L1, False
-    if median > 0 and tree is not None and splits():
+    if split and tree is not None:
         label[tree] = -1  # in every fold's fit, never held out
         alternative, tree_kept = HUBER, True
-    if (not median > 0 or given > (1.0 + LEAST_SQUARES_TOLERANCE) * in_sample
-            or splits()):
+        split = splits()  # (only where the tree does not span the graph)
+    if not median > 0 or given > (1.0 + LEAST_SQUARES_TOLERANCE) * in_sample or split:
         return EstimatorVerdict(rot, LEAST_SQUARES, float("nan"))
     differences: list[float] = []
     for k in range(folds):
