@@ -1,15 +1,16 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Thirty-eight cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+Forty-one cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
 with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
 7 false ones, the issue's new-user graph),
 five graphs of kinds the suite has none of: chains in pieces that only loop closures
 join (two or three sessions; a chain with dropped odometry) and a route driven three times,
-whose true closures come in runs; five planar robots (every rotation about z, noise
-and false closures in heading only; on the chain, false closures from 10 deg off; two at
-10 and 20 deg of heading noise) on the edges of suite cases; and six weighted graphs, as a
+whose true closures come in runs; eight planar robots (every rotation about z, noise
+and false closures in heading only; on the chain, false closures from 10 deg off; five at
+5 to 20 deg of heading noise, three of them clean: smallGrid3D and parking-garage at 5 deg,
+torus3D at 17 deg) on the edges of suite cases; and six weighted graphs, as a
 SLAM front end reports them (odometry at 0.5 deg, loop closures at 3 deg, each edge
 weighted by its information ``1 / sigma^2``; :func:`~benchmarks.regime_cases.weighted_case`)
 on suite topologies with false closures; and four of those measurements sent without their
@@ -137,6 +138,12 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
         planar("stress/planar/parking-garage/noise10+rand10",
                slam("slam/parking-garage/rand10", "parking-garage", random_false=0.10),
                10.0, 10.0),
+        planar("stress/planar/smallGrid3D/noise5",
+               slam("slam/smallGrid3D/noise1", "smallGrid3D"), 5.0, 5.0),
+        planar("stress/planar/parking-garage/noise5",
+               slam("slam/parking-garage/noise1", "parking-garage"), 5.0, 5.0),
+        planar("stress/planar/torus3D/noise17",
+               slam("slam/torus3D/noise1", "torus3D"), 17.0, 17.0),
         weighted("stress/weighted/smallGrid3D/rand10",
                  slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10)),
         weighted("stress/weighted/parking-garage/rand10",

@@ -842,13 +842,21 @@ def test_cross_validation_picks_l1_for_peaked_noise_and_least_squares_for_gaussi
         assert verdict.held_out_change < 0.0 and error["chosen"] < 0.5 * error["ls"]
     else:
         assert verdict.held_out_change > 0.0
-        assert verdict.rotations is ls  # the given solution stands
-    # A solution that is not least squares (its squared cost over 1% above the optimum's) gets
-    # no verdict: cross-validating least squares against L1 says nothing about it.
+        assert not verdict.replaced and verdict.rotations is ls  # the given solution stands
+    # A solution that is not least squares (its squared cost over 1% above the optimum's: a
+    # robust fit): where L1 wins it stands, where least squares wins its optimum replaces it.
     off = np.einsum("nab,nbc->nac", exp_map(rng.normal(0.0, 0.02, (n, 3))), ls)
     other = choose_by_cross_validation(off, i, j, R, w)
-    assert not other.replaced and math.isnan(other.held_out_change)
-    assert other.rotations is off
+    assert other.estimator == verdict.estimator
+    if peaked:
+        assert not other.replaced and other.rotations is off
+    else:
+        assert other.replaced and np.allclose(_gauged(other.rotations), _gauged(ls), atol=1e-6)
+
+
+def _gauged(rot: np.ndarray) -> np.ndarray:
+    """``rot`` in the gauge node 0 = I (least squares from another start keeps its node 0)."""
+    return np.einsum("nab,cb->nac", rot, rot[0])
 
 
 def test_l1_fit_weighs_each_residual_by_its_own_noise_scale() -> None:
@@ -959,7 +967,17 @@ def test_cross_validation_keeps_a_spanning_tree_where_folds_split_and_tries_hube
         assert error["chosen"] < 0.85 * error["ls"]
     else:
         assert verdict.estimator == LEAST_SQUARES and verdict.held_out_change > 0.0
-        assert verdict.rotations is ls
+        assert not verdict.replaced and verdict.rotations is ls
+        # A robust fit (its squared cost over 1% above the optimum's), off the optimum along
+        # the chain's drift (each node turned a little more than the one before): where
+        # least squares wins, its optimum replaces it.
+        drift = np.einsum("nab,nbc->nac", exp_map(np.outer(np.arange(n), [0.0, 0.0, 2e-4])),
+                          ls)
+        cost = [float(np.sum(w * residual_angles(rot, i, j, R) ** 2)) for rot in (drift, ls)]
+        assert cost[0] > 1.01 * cost[1]
+        moved = choose_by_cross_validation(drift, i, j, R, w, tree=chain_tree(n, i, j, w))
+        assert moved.estimator == LEAST_SQUARES and moved.replaced and moved.robust_given
+        assert np.allclose(_gauged(moved.rotations), _gauged(ls), atol=1e-6)
 
 
 def test_huber_fit_minimizes_the_huber_cost() -> None:

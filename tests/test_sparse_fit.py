@@ -11,9 +11,9 @@ import torch
 from rotavg_ros.core.chordal_init import central_node, chordal_rotations
 from rotavg_ros.core.dmf.common import FitSpec
 from rotavg_ros.core.dmf.precondition import LaplacianPreconditioner
-from rotavg_ros.core.dmf.sparse import fit_symmetric_lbfgs, shows_outliers
+from rotavg_ros.core.dmf.sparse import fit_symmetric_lbfgs, huber_delta, shows_outliers
 from rotavg_ros.core.options import SolverOptions
-from rotavg_ros.core.so3 import exp_map, geodesic_distance, random_rotations
+from rotavg_ros.core.so3 import exp_map, geodesic_distance, random_rotations, rotation_about_axis
 
 
 def _loop_chain(n: int, seed: int) -> tuple[np.ndarray, ...]:
@@ -33,8 +33,7 @@ def _fit(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, precondition: bool
     opt = SolverOptions.for_profile("default")
     w = np.ones(i.size)
     H0 = chordal_rotations(n, i, j, R, w)
-    delta = opt.sparse.huber_factor * float(np.median(np.abs(
-        np.einsum("eab,ecb->eac", H0[i], H0[j]) - R)))
+    delta = huber_delta(H0, i, j, R, opt.sparse.huber_factor)
     fit = fit_symmetric_lbfgs(n, i, j, R, w, replace(opt.sparse, precondition=precondition),
                               opt.dense, FitSpec(2, 3 * n, 0, "cpu", False), H0, delta)
     return fit.H, fit.iterations
@@ -102,3 +101,37 @@ def test_chordal_start_is_anchored_at_a_central_node_and_gauged_at_node_0() -> N
     R = np.einsum("eab,ecb->eac", truth[i], truth[j])
     out = chordal_rotations(23, i, j, R, np.ones(i.size))
     assert np.degrees(geodesic_distance(out, truth)).max() < 1e-5  # (arccos near 1)
+
+
+def _planar_loop_chain(n: int, seed: int, noise_deg: float
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``_loop_chain``'s edges on a planar robot: every rotation about z, heading noise
+    ``N(0, noise_deg)`` on every edge."""
+    rng = np.random.default_rng(seed)
+    heading = np.cumsum(rng.normal(0.0, 0.1, n))
+    i = np.concatenate([np.arange(n - 1), rng.integers(0, n // 2, 12)])
+    j = np.concatenate([np.arange(1, n), rng.integers(n // 2, n, 12)])
+    delta = heading[i] - heading[j] + rng.normal(0.0, math.radians(noise_deg), i.size)
+    return i, j, rotation_about_axis(np.array([0.0, 0.0, 1.0]), delta)
+
+
+def test_huber_delta_counts_only_the_entries_that_carry_noise() -> None:
+    """Rotations about one axis leave five of nine residual entries at zero: the median over
+    all of them was 0 (an L1 fit); over the others it is the noise's. On a 3D graph every
+    entry counts, as before."""
+    n = 200
+    i, j, R = _planar_loop_chain(n, seed=3, noise_deg=5.0)
+    H0 = chordal_rotations(n, i, j, R, np.ones(i.size))
+    residual = np.abs(np.einsum("eab,ecb->eac", H0[i], H0[j]) - R)
+    assert float(np.median(residual)) <= 1e-12  # the structural zeros outnumber the rest
+    assert np.all(residual[:, 2, :] <= 1e-12) and np.all(residual[:, :, 2] <= 1e-12)
+    delta = huber_delta(H0, i, j, R, 30.0)
+    assert delta == 30.0 * float(np.median(residual[:, :2, :2]))
+    assert delta > 30.0 * 1e-3  # the noise's scale (5 deg), not the floor
+    # A 3D chain with loop closures: the chordal start fits some edges exactly (the
+    # bridges), but no entry is zero on every edge: every entry counts, as before.
+    i3, j3, R3, _ = _loop_chain(n, seed=3)
+    H3 = chordal_rotations(n, i3, j3, R3, np.ones(i3.size))
+    residual3 = np.abs(np.einsum("eab,ecb->eac", H3[i3], H3[j3]) - R3)
+    assert residual3.min() <= 1e-12
+    assert huber_delta(H3, i3, j3, R3, 30.0) == 30.0 * float(np.median(residual3))

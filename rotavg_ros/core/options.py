@@ -181,7 +181,8 @@ class SparseFitOptions:
     """Depth candidates. Depth matters through DMF's implicit bias from a near-zero start;
     a warm-started L-BFGS fit of a smooth loss has none, so one is enough."""
     huber_factor: float = 30.0
-    """Huber delta = this x median |entry residual| of the chordal start."""
+    """Huber delta = this x median |entry residual| of the chordal start, over the entries
+    that carry noise (:func:`~rotavg_ros.core.dmf.sparse.huber_delta`)."""
     rounds: int = field(default=8, metadata=_flat("sparse_rounds"))
     """At most this many L-BFGS runs, with an outlier reweighting between."""
     inner_iterations: int = field(default=300, metadata=_flat("sparse_inner_iterations"))

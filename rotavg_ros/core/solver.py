@@ -29,12 +29,12 @@ from rotavg_ros.core.dmf import (
     fit_symmetric_lbfgs,
     fit_vanilla,
 )
-from rotavg_ros.core.dmf.sparse import shows_outliers
+from rotavg_ros.core.dmf.sparse import huber_delta, shows_outliers
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.class_noise import class_noise
-from rotavg_ros.core.robust.l1_choice import choose_by_cross_validation
+from rotavg_ros.core.robust.l1_choice import LEAST_SQUARES, choose_by_cross_validation
 from rotavg_ros.core.robust.noise import redundancy
 from rotavg_ros.core.robust.verify import (
     RobustSolve,
@@ -401,15 +401,19 @@ class RotationAverager:
             verdict = choose_by_cross_validation(final, ii, jj, R[inlier], ww,
                                                  seed=opt.runtime.seed,
                                                  tree=chain_tree(n, ii, jj, ww))
-            self._say("cross-validation: no verdict (the kept solution is not least squares, "
-                      "or the inliers do not join every node)"
+            stands = verdict.robust_given and not verdict.replaced
+            self._say("cross-validation: no verdict (the inliers do not join every node)"
                       if np.isnan(verdict.held_out_change)
                       else f"cross-validation: {verdict.estimator}"
                       f" (held-out change {verdict.held_out_change:+.3f}, "
                       f"{verdict.folds_run} folds"
-                      f"{', a spanning tree in every fold' if verdict.tree_kept else ''})")
+                      f"{', a spanning tree in every fold' if verdict.tree_kept else ''}"
+                      f"{'; the kept robust fit stands' if stands else ''})")
             if verdict.replaced:  # (else the kept solution stands as it is)
-                final, estimator = verdict.rotations, verdict.estimator
+                # The alternative's fit, or least squares' optimum in a robust fit's place.
+                final = verdict.rotations
+                estimator = ("ls" if verdict.estimator == LEAST_SQUARES
+                             else verdict.estimator)
         if out.chosen == "robust" or refitted or estimator or out.relocalized:
             # (the anchor may have moved)
             final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
@@ -623,8 +627,7 @@ class RotationAverager:
         if sparse and dense.explicit_constraint:
             if H0 is None:
                 H0 = chordal if chordal is not None else chordal_rotations(n, i, j, R, w)
-            pred = np.einsum("eab,ecb->eac", H0[i], H0[j])
-            delta = opt.sparse.huber_factor * float(np.median(np.abs(pred - R)))
+            delta = huber_delta(H0, i, j, R, opt.sparse.huber_factor)
         graphed = runtime.cuda_graphs and dense.explicit_constraint and not sparse
         workers, intra = _thread_plan(len(depths), runtime.threads, device, graphed)
         race = None

@@ -38,6 +38,27 @@ after all 8); on a stream graph with 5% outliers the rounds that mattered moved 
 1e-1 to 1e-2."""
 
 
+STRUCTURAL_ZERO = 1e-12
+"""An entry of the residual blocks at or below this on every edge is a structural zero
+(:func:`huber_delta`)."""
+
+
+def huber_delta(H0: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
+                factor: float) -> float:
+    """The sparse fit's Huber ``delta``: ``factor`` x the median absolute entry of the
+    residual blocks ``H0_i H0_j^T - R_ij`` at the start ``H0``, over the entries (row,
+    column) that are not zero on every edge. Where every rotation turns about one common
+    axis (a planar robot's graph), five of the nine entries are zero on every edge, and
+    over all entries the median was 0: ``delta`` fell to its floor and the "Huber" fit was
+    an L1 fit (docs/benchmarks.md, "Planar graphs: the sparse fit's Huber scale"). On a 3D
+    graph no entry is zero on every edge, and ``delta`` is the median over all of them, as
+    before."""
+    a = np.abs(np.einsum("eab,ecb->eac", H0[i], H0[j]) - R)
+    carries = a.max(axis=0, initial=0.0) > STRUCTURAL_ZERO  # (3, 3): some edge's noise
+    a = a[:, carries]
+    return factor * float(np.median(a)) if a.size else 0.0
+
+
 def shows_outliers(H: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                    outlier_factor: float) -> bool:
     """Whether some edge's noise-scaled residual ``|H_i H_j^T - R_ij|_F sqrt(w)`` at the
