@@ -21,23 +21,14 @@ Needs the shared data (``../shared`` or ``$ROTAVG_SHARED``); exits with a messag
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from dataclasses import asdict
 from pathlib import Path
 
 from benchmarks import peers
 from benchmarks.datasets import shared_dir_or_say
 from benchmarks.regime_cases import RegimeCase, planar_case, slam_case
-from benchmarks.regimes import (
-    ORACLE,
-    OURS_NOFILTER,
-    OURS_PAPER,
-    Result,
-    methods_for,
-    peer_targets,
-    run_method,
-)
+from benchmarks.regime_stress import result_cells, verdict, write_results
+from benchmarks.regimes import ORACLE, OURS_NOFILTER, OURS_PAPER, Result, methods_for, run_method
 
 GRAPHS = ("smallGrid3D", "parking-garage", "sphere2500", "torus3D")
 VARIANTS = ((5.0, 0.0), (10.0, 0.0), (17.0, 0.0), (5.0, 0.05))
@@ -78,25 +69,21 @@ def main() -> int:
                 if runnable and method not in SKIPPED]
         results += rows
         ours = rows[0]
-        targets = peer_targets(ours, rows) if ours.status == "ok" else None
+        tag = verdict(ours, rows)
         chordal = next((r for r in rows if r.method == "gtsam_chordal" and r.status == "ok"),
                        None)
         clean = case.inlier is None or bool(case.inlier.all())
         high = (clean and chordal is not None and ours.status == "ok"
                 and ours.median_deg > 1.05 * chordal.median_deg)
-        misses += targets is not None and not targets[0]
+        misses += tag.startswith("MISS")
         above_chordal += high
-        tag = ("-" if targets is None else "OK" if targets[0] else "MISS") + (
-            " CHORDAL+5%" if high else "")
-        cells = [f"{r.method} {r.mean_deg:.3f}/{r.median_deg:.3f} {r.wall_s:.2f}s"
-                 if r.status == "ok" else f"{r.method} {r.status}" for r in rows]
-        print(f"{tag:16s} {case.name:34s} " + " | ".join(cells), flush=True)
+        tag += " CHORDAL+5%" if high else ""
+        print(f"{tag:16s} {case.name:34s} {result_cells(rows)}", flush=True)
     print(f"seed {args.seed}: MISS on {misses} of {len(GRAPHS) * len(VARIANTS)}; clean graphs "
           f"more than 5% above chordal's median: {above_chordal} of "
           f"{len(GRAPHS) * sum(f == 0 for _, f in VARIANTS)}")
     if args.json:
-        Path(args.json).write_text(json.dumps([{**asdict(r), "errors": None}
-                                               for r in results], indent=1))
+        write_results(args.json, results)
     return 0
 
 

@@ -175,6 +175,18 @@ def verdict(ours: Result, rows: list[Result]) -> str:
     return ("OK" if targets[0] else "MISS") + (" MEAN>1.5x" if targets[1] else "")
 
 
+def result_cells(rows: list[Result]) -> str:
+    """Each method's ``mean/median time`` (or its status), as one line's cells."""
+    return " | ".join(f"{r.method} {r.mean_deg:.3f}/{r.median_deg:.3f} {r.wall_s:.2f}s"
+                      if r.status == "ok" else f"{r.method} {r.status}" for r in rows)
+
+
+def write_results(path: str, results: list[Result]) -> None:
+    """The raw results as JSON, without the per-node errors."""
+    Path(path).write_text(json.dumps([{**asdict(r), "errors": None} for r in results],
+                                     indent=1))
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -198,12 +210,9 @@ def main() -> int:
                 for method, runnable in methods_for(case, available)
                 if runnable and method not in (OURS_PAPER, OURS_NOFILTER)]
         results += rows
-        cells = [f"{r.method} {r.mean_deg:.3f}/{r.median_deg:.3f} {r.wall_s:.2f}s"
-                 if r.status == "ok" else f"{r.method} {r.status}" for r in rows]
-        print(f"{verdict(rows[0], rows):14s} {case.name:36s} " + " | ".join(cells), flush=True)
+        print(f"{verdict(rows[0], rows):14s} {case.name:36s} {result_cells(rows)}", flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps([{**asdict(r), "errors": None}
-                                               for r in results], indent=1))
+        write_results(args.json, results)
     return 0
 
 
