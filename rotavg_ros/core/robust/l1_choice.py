@@ -78,8 +78,9 @@ LEAST_SQUARES_TOLERANCE = 0.01
 this fraction of the least-squares optimum's. Else it is some other estimator, a robust
 fit (a sparse DMF fit that reweighted its edges towards L1: 8.5-14.5% above the optimum on
 the regime benchmark's view graphs with 30-50% outliers, where it beat both least squares
-and the L1 fit; a planar graph's sparse fit before :func:`~rotavg_ros.core.dmf.sparse.
-huber_delta` counted only the entries that carry noise: an L1 fit): where least squares
+and the L1 fit; a planar graph's sparse fit before
+:func:`~rotavg_ros.core.dmf.sparse.huber_delta` counted only the entries that carry
+noise: an L1 fit): where least squares
 wins the cross-validation, its optimum replaces that fit; where the alternative wins, the
 robust fit stands instead of the alternative's. (The least-squares-like solutions there:
 within 0.01%. At 0.1%, measured on the stress variants at seed 20, three 3D graphs whose
@@ -207,11 +208,12 @@ def choose_by_cross_validation(
     robust = given > (1.0 + LEAST_SQUARES_TOLERANCE) * in_sample
     if change >= 0.0:  # least squares: its optimum in a robust fit's place, else rot
         return EstimatorVerdict(ls if robust else rot, LEAST_SQUARES, change, run,
-                                tree_kept, robust, robust)
+                                tree_kept, replaced=robust, robust_given=robust)
     if robust:  # a robust fit already: it stands
-        return EstimatorVerdict(rot, alternative, change, run, tree_kept, False, robust)
+        return EstimatorVerdict(rot, alternative, change, run, tree_kept,
+                                replaced=False, robust_given=True)
     return EstimatorVerdict(alternative_fit(alternative, ls, i, j, R, w, median),
-                            alternative, change, run, tree_kept, True, robust)
+                            alternative, change, run, tree_kept, replaced=True)
 
 
 def held_out_difference(ls: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
