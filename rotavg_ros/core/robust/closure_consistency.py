@@ -12,8 +12,10 @@ noise enters it over the chain between ``b`` and ``d`` and between ``a`` and ``c
 these stretches do not cancel (the symmetric difference of the two), so its variance per
 axis is ``sigma^2`` times the sum of ``1 / w`` over those odometry edges plus the two
 closures' own ``1 / w``. A pair whose squared loop angle exceeds ``CHI2_3_999`` times that
-variance is inconsistent. Far-apart closures are loosely tested (the drift between them
-excuses much), closures between the same two places tightly.
+variance is inconsistent (``CHI2_1_999`` on a planar problem, whose noise turns about one
+axis: :data:`~.noise.NOISE_AXES`; likewise the quantile below). Far-apart closures are
+loosely tested (the drift between them excuses much), closures between the same two places
+tightly.
 
 The same loops, one closure at a time, give a noise scale that no solution's fit enters
 (:func:`loop_noise_scale`): a true closure's squared loop angle is its loop's variance
@@ -36,12 +38,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rotavg_ros.core.robust.noise import NOISE_AXES
 from rotavg_ros.core.robust.odometry_start import odometry_rotations
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 CHI2_3_999 = 16.27
 """99.9% quantile of the chi-square distribution with 3 degrees of freedom: a pair of true
 closures is called inconsistent with probability 0.1%."""
+CHI2_1_999 = 10.83
+"""The same with 1 degree of freedom (a planar problem)."""
 
 MAX_CLOSURES = 6000
 """Above this many testable closures the pairwise test is not run and every closure is kept:
@@ -55,6 +60,8 @@ LOOP_QUANTILE = 0.25
 CHI2_3_Q25 = 1.2125
 """The 25% quantile of the chi-square distribution with 3 degrees of freedom
 (:data:`LOOP_QUANTILE`'s; a test checks it against scipy)."""
+CHI2_1_Q25 = 0.1015
+"""The same with 1 degree of freedom (a planar problem)."""
 LOOP_MIN_CLOSURES = 4
 """Fewer testable closures than this give :func:`loop_noise_scale` no answer."""
 
@@ -123,7 +130,8 @@ def loop_noise_scale(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w:
     ratio = ratio[np.isfinite(ratio)]
     if ratio.size < LOOP_MIN_CLOSURES:
         return math.nan
-    return math.sqrt(float(np.quantile(ratio, LOOP_QUANTILE)) / CHI2_3_Q25)
+    q25 = CHI2_3_Q25 if NOISE_AXES.get() == 3 else CHI2_1_Q25
+    return math.sqrt(float(np.quantile(ratio, LOOP_QUANTILE)) / q25)
 
 
 def consistent_closures(
@@ -180,11 +188,12 @@ def consistent_closures(
         if not one_piece:
             block[piece[a[rows], None] != piece[None, a]] = 0.0
     np.fill_diagonal(ratio, 0.0)
+    chi2_999 = CHI2_3_999 if NOISE_AXES.get() == 3 else CHI2_1_999
     out = []
     for sigma in sigmas:
         keep = np.ones(i.size, bool)
         if np.isfinite(sigma) and sigma > 0.0:
-            keep[testable[~_mutually_consistent(ratio > CHI2_3_999 * sigma * sigma)]] = False
+            keep[testable[~_mutually_consistent(ratio > chi2_999 * sigma * sigma)]] = False
         out.append(keep)
     return out
 

@@ -20,7 +20,8 @@ run's common pull is ``p_S = s^T U_S`` with ``s = sqrt(w_S) / |sqrt(w_S)|``; wit
 ``sigma`` per axis the fit leaves it the variance ``sigma^2 (1 - h_S)`` per axis, where
 ``h_S = y_S^T L^-1 y_S`` and ``y_S = sum_e w_e (1_a - 1_b) / |sqrt(w_S)|`` (``1_a``: the
 indicator vector of node ``a``; one Laplacian solve per run). So ``T_S = |p_S|^2 / (1 - h_S)``
-is ``sigma^2`` times a chi-square with 3 degrees of freedom for a run of true closures; it
+is ``sigma^2`` times a chi-square with 3 degrees of freedom for a run of true closures (1
+on a planar problem, :data:`~.noise.NOISE_AXES`: the noise turns about one axis); it
 is also how much lower the weighted sum of squares would be if the run's common pull were
 freed (the deletion of one combined observation). A run far above that (``RUN_QUANTILE``,
 over all the fit's runs) is suspect.
@@ -36,6 +37,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.special import chdtri
 
 from rotavg_ros.core.robust.gauss_newton import Factor, anchored_laplacian, edge_residuals
+from rotavg_ros.core.robust.noise import NOISE_AXES
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 RUN_GAP = 2
@@ -44,9 +46,9 @@ in one run (a front end that matches every other keyframe still forms runs)."""
 
 RUN_QUANTILE = 0.999
 """A run is suspect where its ``T_S`` exceeds ``sigma^2`` times the chi-square quantile
-(3 degrees of freedom) at which the noise alone makes any of the fit's runs suspect with
-probability ``1 - RUN_QUANTILE`` (Bonferroni: ``1 - (1 - RUN_QUANTILE) / runs`` per run;
-16.3 sigma^2 for one run, 25.5 for parking-garage's 80)."""
+(3 degrees of freedom, 1 on a planar problem) at which the noise alone makes any of the
+fit's runs suspect with probability ``1 - RUN_QUANTILE`` (Bonferroni: ``1 - (1 -
+RUN_QUANTILE) / runs`` per run; 16.3 sigma^2 for one run, 25.5 for parking-garage's 80)."""
 
 _COLUMNS = 256  # runs per block of Laplacian solves
 
@@ -134,7 +136,7 @@ def suspect_runs(
     runs = closure_runs(i, j, closures & fit)
     if not runs or not sigma > 0.0:
         return []
-    limit = sigma * sigma * chdtri(3, (1.0 - RUN_QUANTILE) / len(runs))
+    limit = sigma * sigma * chdtri(NOISE_AXES.get(), (1.0 - RUN_QUANTILE) / len(runs))
     excess = run_pull(rot, i, j, R, w * fit, runs) / limit
     order = np.argsort(-np.nan_to_num(excess, nan=0.0), kind="stable")
     return [runs[k] for k in order if excess[k] > 1.0]

@@ -165,6 +165,7 @@ def alternative_fit(estimator: str, rot: FloatArray, i: IntArray, j: IntArray,
 def choose_by_cross_validation(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     folds: int = FOLDS, seed: int = 0, tree: BoolArray | None = None,
+    l1_from_fold: bool = False,
 ) -> EstimatorVerdict:
     """The solution ``rot``, the least-squares optimum or the alternative's fit of the
     given edges, by ``folds``-fold cross-validation of least squares against the
@@ -177,7 +178,8 @@ def choose_by_cross_validation(
     their rotation in the fold's fits), the ``tree`` edges (a spanning tree) stay in every
     fold's fit and the alternative is Huber's estimator, else L1. No verdict (``rot``
     stands, ``held_out_change`` NaN) where the folds split the graph and no ``tree`` is
-    given."""
+    given. ``l1_from_fold``: each fold's L1 fit starts from the fold's own least squares
+    (:func:`held_out_difference`)."""
     ls = refine_least_squares(rot, i, j, R, w, iterations=20)
     r = residual_angles(ls, i, j, R)
     median = float(np.median(np.sqrt(w) * r))
@@ -200,7 +202,7 @@ def choose_by_cross_validation(
     differences: list[float] = []
     for k in range(folds):
         differences.append(held_out_difference(ls, i, j, R, w, median, label == k,
-                                               alternative))
+                                               alternative, l1_from_fold))
         if decided_early(differences):
             break
     change = sum(differences) * folds / len(differences) / max(in_sample, 1e-300)
@@ -218,7 +220,7 @@ def choose_by_cross_validation(
 
 def held_out_difference(ls: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
                         w: FloatArray, median: float, held: BoolArray,
-                        alternative: str = L1) -> float:
+                        alternative: str = L1, l1_from_fold: bool = False) -> float:
     """One fold: least squares of the edges not ``held``, from ``ls``, and the
     ``alternative`` fit (:func:`alternative_fit`) of them; the ``held`` edges'
     ``sum w (r_alt^2 - r_LS^2)`` (negative: the alternative predicts them better).
@@ -233,10 +235,17 @@ def held_out_difference(ls: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
     changed. Started from ``ls``, the Huber verdicts were the same on those graphs but one
     (anisotropic 22, torus3D rand10: Huber, 3.7% lower), and on a chain with loop closures
     under Gaussian noise it took Huber in 4 draws of 4, worse on 3 (from the fold's least
-    squares: 2 of 4)."""
+    squares: 2 of 4).
+
+    ``l1_from_fold``: the L1 fit starts from the fold's least squares too. The solver sets
+    it on planar problems (one noise axis, :data:`~.noise.NOISE_AXES`): there, under
+    Gaussian heading noise, the lean chose L1 on smallGrid3D's edges at 17 deg in three
+    draws of three (seed 32: 10.59 deg median against least squares' 6.86), and from the
+    fold's least squares every verdict was least squares (docs/benchmarks.md, "Planar
+    robots: a one-axis noise model")."""
     fit = ~held
     ls_k = refine_least_squares(ls, i[fit], j[fit], R[fit], w[fit], iterations=20)
-    start = ls_k if alternative == HUBER else ls
+    start = ls_k if alternative == HUBER or l1_from_fold else ls
     alt_k = alternative_fit(alternative, start, i[fit], j[fit], R[fit], w[fit], median)
     return float(np.sum(w[held] * (residual_angles(alt_k, i[held], j[held], R[held]) ** 2
                                    - residual_angles(ls_k, i[held], j[held], R[held]) ** 2)))

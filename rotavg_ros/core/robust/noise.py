@@ -7,6 +7,11 @@ Residual angles ``r`` (radians) of edges against a solution are modelled as a mi
 * outliers: rotations uniform on SO(3), whose angle has density ``(1 - cos r) / pi`` on
   ``[0, pi]``.
 
+On a planar problem (every measurement turns about one common axis: a 2D front end's
+headings, :func:`noise_axes`) both have one axis: the inliers' angles are half-normal (chi,
+1 degree of freedom) of scale ``s``, and a wrong heading is uniform on the circle, its angle
+uniform on ``[0, pi]``. The solver sets :data:`NOISE_AXES` per component.
+
 An EM fit gives ``s`` and the inlier fraction; the inlier threshold is the angle where an
 edge becomes more likely an outlier than an inlier. With no outliers the threshold moves far
 into the inlier tail, so clean graphs lose no edges; with high noise it grows with ``s``.
@@ -15,20 +20,48 @@ into the inlier tail, so clean graphs lose no edges; with high noise it grows wi
 from __future__ import annotations
 
 import math
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import numpy as np
 
+from rotavg_ros.core.so3 import log_map
 from rotavg_ros.core.types import BoolArray, FloatArray
+
+NOISE_AXES: ContextVar[int] = ContextVar("NOISE_AXES", default=3)
+"""Axes of the rotation vector the noise acts on: 3, or 1 on a planar problem
+(:func:`noise_axes`). Read by :func:`fit_noise` and :func:`looks_gaussian`."""
+
+PLANAR_TOLERANCE = 1e-12
+"""A problem is planar where the measurements' rotation vectors have a second moment
+``sum v v^T`` whose two smaller eigenvalues sum to at most this fraction of the largest:
+exactly planar input (a 2D g2o file lifted to 3D, a planar robot's headings) gives rounding
+only (about 1e-32); a ground robot measured in 3D with 0.1 deg of roll and pitch noise on
+headings of a radian about 1e-5, and stays three-axis."""
+
+_MEDIAN_OF_CHI = {1: 0.6745, 3: 1.538}
+"""Median of the unit-scale chi distribution with 1 and 3 degrees of freedom."""
+
+
+def noise_axes(R: FloatArray) -> int:
+    """1 where every rotation in ``R`` (E, 3, 3) turns about one common axis (a planar
+    problem: its noise and its residuals have one axis), else 3."""
+    v = log_map(np.asarray(R, dtype=np.float64).reshape(-1, 3, 3))
+    moments = np.linalg.eigvalsh(v.T @ v)  # ascending
+    if not moments[2] > 0.0:
+        return 3
+    return 1 if moments[0] + moments[1] <= PLANAR_TOLERANCE * moments[2] else 3
 
 
 @dataclass(frozen=True)
 class NoiseModel:
-    """Fitted mixture: per-axis noise ``sigma`` (rad), inlier fraction, threshold (rad)."""
+    """Fitted mixture: per-axis noise ``sigma`` (rad), inlier fraction, threshold (rad), and
+    the axes the noise acts on (3, or 1 on a planar problem)."""
 
     sigma: float
     inlier_fraction: float
     threshold: float
+    axes: int = 3
 
     @property
     def sigma_deg(self) -> float:
@@ -44,6 +77,21 @@ def _log_uniform(r: FloatArray) -> FloatArray:
     return np.log(np.maximum(1.0 - np.cos(r), 1e-300) / math.pi)
 
 
+def _log_inlier(r: FloatArray, s: float, axes: int) -> FloatArray:
+    """Log density of an inlier's residual angle: Maxwell (3 axes) or half-normal (1)."""
+    if axes == 3:
+        return _log_maxwell(r, s)
+    return 0.5 * math.log(2.0 / math.pi) - math.log(s) - r * r / (2.0 * s * s)
+
+
+def _log_outlier(r: FloatArray, axes: int) -> FloatArray:
+    """Log density of an outlier's residual angle: a rotation uniform on SO(3) (3 axes) or
+    a heading uniform on the circle (1: uniform on ``[0, pi]``)."""
+    if axes == 3:
+        return _log_uniform(r)
+    return np.full(np.shape(r), -math.log(math.pi))
+
+
 def fit_noise(
     r: FloatArray, min_sigma: float = math.radians(0.05), max_threshold: float = math.radians(60),
     iterations: int = 50, scale: FloatArray | None = None,
@@ -56,32 +104,33 @@ def fit_noise(
     ``min_sigma`` keeps the scale away from zero (exact data); the threshold is capped at
     ``max_threshold``. Returns a wide threshold when there are too few residuals to fit.
     """
+    axes = NOISE_AXES.get()
     r = np.asarray(r, dtype=np.float64)
     ok = np.isfinite(r)
     sc = np.ones(r.shape) if scale is None else np.asarray(scale, dtype=np.float64)
     r, sc = r[ok], sc[ok]
     if r.size < 5:
-        return NoiseModel(math.radians(5.0), 1.0, max_threshold)
+        return NoiseModel(math.radians(5.0), 1.0, max_threshold, axes)
     r = np.maximum(r, 1e-9)
     if scale is None:
         r = np.minimum(r, math.pi)
-    s = max(float(np.median(r)) / 1.538, min_sigma)  # median of Maxwell(1) = 1.538
+    s = max(float(np.median(r)) / _MEDIAN_OF_CHI[axes], min_sigma)
     p = 0.8
-    log_out = np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi))
+    log_out = np.log(sc) + _log_outlier(np.minimum(r * sc, math.pi), axes)
     for _ in range(iterations):
-        a = math.log(p) + _log_maxwell(r, s)
+        a = math.log(p) + _log_inlier(r, s, axes)
         b = math.log(1.0 - p) + log_out
         gamma = 1.0 / (1.0 + np.exp(np.clip(b - a, -700, 700)))
         total = float(gamma.sum())
         if total <= 0:
             break
-        s_new = max(math.sqrt(float((gamma * r * r).sum()) / (3.0 * total)), min_sigma)
+        s_new = max(math.sqrt(float((gamma * r * r).sum()) / (axes * total)), min_sigma)
         p_new = min(max(total / r.size, 1e-3), 1.0 - 1e-6)
         done = abs(s_new - s) < 1e-6 * s and abs(p_new - p) < 1e-6
         s, p = s_new, p_new
         if done:
             break
-    return NoiseModel(s, p, _crossing(s, p, max_threshold))
+    return NoiseModel(s, p, _crossing(s, p, max_threshold, axes), axes)
 
 
 def is_inlier(r: FloatArray, model: NoiseModel, scale: FloatArray | None = None,
@@ -94,8 +143,9 @@ def is_inlier(r: FloatArray, model: NoiseModel, scale: FloatArray | None = None,
     p = model.inlier_fraction
     if p >= 1.0:
         return r <= max_threshold
-    log_in = math.log(p) + _log_maxwell(r, model.sigma)
-    log_out = math.log(1.0 - p) + np.log(sc) + _log_uniform(np.minimum(r * sc, math.pi))
+    log_in = math.log(p) + _log_inlier(r, model.sigma, model.axes)
+    log_out = math.log(1.0 - p) + np.log(sc) + _log_outlier(np.minimum(r * sc, math.pi),
+                                                            model.axes)
     return (log_in >= log_out) & (r <= max_threshold)
 
 
@@ -103,15 +153,19 @@ def log_likelihood(r: FloatArray, model: NoiseModel) -> float:
     """Log-likelihood of residual angles ``r`` (radians) under the fitted mixture."""
     r = np.clip(np.asarray(r, dtype=np.float64), 1e-9, math.pi)
     p = model.inlier_fraction
-    a = math.log(p) + _log_maxwell(r, model.sigma)
-    b = math.log(1.0 - p) + _log_uniform(r) if p < 1.0 else np.full(r.shape, -np.inf)
+    a = math.log(p) + _log_inlier(r, model.sigma, model.axes)
+    b = (math.log(1.0 - p) + _log_outlier(r, model.axes) if p < 1.0
+         else np.full(r.shape, -np.inf))
     return float(np.sum(np.logaddexp(a, b)))
 
 
-def _crossing(s: float, p: float, cap: float) -> float:
-    """Smallest angle above the inlier mode where outliers become more likely; <= cap."""
-    grid = np.linspace(s * math.sqrt(2.0), max(cap, s * math.sqrt(2.0)), 2000)
-    more_out = math.log(1.0 - p) + _log_uniform(grid) > math.log(p) + _log_maxwell(grid, s)
+def _crossing(s: float, p: float, cap: float, axes: int = 3) -> float:
+    """Smallest angle above the inlier mode (half-normal: above one scale) where outliers
+    become more likely; <= cap."""
+    mode = s * math.sqrt(2.0) if axes == 3 else s
+    grid = np.linspace(mode, max(cap, mode), 2000)
+    more_out = (math.log(1.0 - p) + _log_outlier(grid, axes)
+                > math.log(p) + _log_inlier(grid, s, axes))
     hit = np.flatnonzero(more_out)
     return min(float(grid[hit[0]]), cap) if hit.size else cap
 
@@ -157,14 +211,20 @@ def residual_shape(t: FloatArray, inlier: BoolArray, vectors: FloatArray | None 
     return float(np.mean(r) / math.sqrt(float(np.mean(r * r))))
 
 
+GAUSSIAN_SHAPE_PLANAR = 0.78
+""":data:`GAUSSIAN_SHAPE` on a planar problem (:data:`NOISE_AXES` 1): within 0.02 of a
+half-normal distribution's ``sqrt(2 / pi)`` = 0.798, Gaussian noise on one axis."""
+
+
 def looks_gaussian(t: FloatArray, inlier: BoolArray, vectors: FloatArray | None = None,
                    ) -> bool:
     """Whether the residual angles ``t`` of the ``inlier`` edges (with their residual
     rotation ``vectors``, whitened) look Gaussian (:func:`residual_shape` at least
-    :data:`GAUSSIAN_SHAPE`; False where it is undefined): least squares is then the better
-    estimator on those edges."""
+    :data:`GAUSSIAN_SHAPE`, or :data:`GAUSSIAN_SHAPE_PLANAR` on a planar problem; False where
+    it is undefined): least squares is then the better estimator on those edges."""
     shape = residual_shape(t, inlier, vectors)
-    return math.isfinite(shape) and shape >= GAUSSIAN_SHAPE
+    bound = GAUSSIAN_SHAPE if NOISE_AXES.get() == 3 else GAUSSIAN_SHAPE_PLANAR
+    return math.isfinite(shape) and shape >= bound
 
 
 def redundancy(num_nodes: int, inlier: BoolArray) -> float:
