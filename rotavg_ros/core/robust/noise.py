@@ -10,7 +10,9 @@ Residual angles ``r`` (radians) of edges against a solution are modelled as a mi
 On a planar problem (every measurement turns about one common axis: a 2D front end's
 headings, :func:`noise_axes`) both have one axis: the inliers' angles are half-normal (chi,
 1 degree of freedom) of scale ``s``, and a wrong heading is uniform on the circle, its angle
-uniform on ``[0, pi]``. The solver sets :data:`NOISE_AXES` per component.
+uniform on ``[0, pi]``. The solver sets :data:`NOISE_AXES` per component (one axis only
+where the graph is no odometry chain with sparse loop closures: see
+``RotationAverager.solve_component``).
 
 An EM fit gives ``s`` and the inlier fraction; the inlier threshold is the angle where an
 edge becomes more likely an outlier than an inlier. With no outliers the threshold moves far
@@ -30,14 +32,16 @@ from rotavg_ros.core.types import BoolArray, FloatArray
 
 NOISE_AXES: ContextVar[int] = ContextVar("NOISE_AXES", default=3)
 """Axes of the rotation vector the noise acts on: 3, or 1 on a planar problem
-(:func:`noise_axes`). Read by :func:`fit_noise` and :func:`looks_gaussian`."""
+(:func:`noise_axes`). Read by :func:`fit_noise` and :func:`looks_gaussian`, by the closure
+tests for their chi-square quantiles (:mod:`.closure_consistency`, :mod:`.closure_runs`) and
+by the solver for its cross-validation (``l1_from_fold``)."""
 
 PLANAR_TOLERANCE = 1e-12
 """A problem is planar where the measurements' rotation vectors have a second moment
 ``sum v v^T`` whose two smaller eigenvalues sum to at most this fraction of the largest:
 exactly planar input (a 2D g2o file lifted to 3D, a planar robot's headings) gives rounding
-only (about 1e-32); a ground robot measured in 3D with 0.1 deg of roll and pitch noise on
-headings of a radian about 1e-5, and stays three-axis."""
+only (0 to rounding); a ground robot measured in 3D with 0.1 deg of roll and pitch noise on
+headings of up to a radian about 2e-5, and stays three-axis."""
 
 _MEDIAN_OF_CHI = {1: 0.6745, 3: 1.538}
 """Median of the unit-scale chi distribution with 1 and 3 degrees of freedom."""
