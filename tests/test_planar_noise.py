@@ -17,7 +17,13 @@ from scipy import stats
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.robust import verify
-from rotavg_ros.core.robust.closure_consistency import CHI2_1_999, CHI2_1_Q25, LOOP_QUANTILE
+from rotavg_ros.core.robust.closure_consistency import (
+    CHI2_1_999,
+    CHI2_1_Q25,
+    CHI2_3_Q25,
+    LOOP_QUANTILE,
+    loop_noise_scale,
+)
 from rotavg_ros.core.robust.gauss_newton import refine_least_squares
 from rotavg_ros.core.robust.l1_choice import LEAST_SQUARES, choose_by_cross_validation
 from rotavg_ros.core.robust.noise import (
@@ -105,20 +111,55 @@ def _axes_seen(i: np.ndarray, j: np.ndarray, R: np.ndarray, n: int,
     return seen, sol
 
 
-def test_planar_grid_at_high_heading_noise_keeps_its_edges_and_least_squares() -> None:
-    """15 deg of heading noise on a 12 x 12 grid: the one-axis model reads about 15 deg,
-    keeps every edge, and the answer is least squares' (the three-axis model read about
-    8 deg and cut true edges: docs/benchmarks.md, "Planar robots: a one-axis noise model")."""
-    i, j, R, truth = _planar_grid(12, 15.0, seed=3)
-    n = truth.shape[0]
-    seen, sol = _axes_seen(i, j, R, n)
-    assert seen == {1}
-    assert sol.noise_sigma_deg == pytest.approx(15.0, rel=0.2)
-    assert sol.kept.all()
-    ls = refine_least_squares(truth, i, j, R, np.ones(i.size), iterations=50)
-    median = {k: evaluate(dict(enumerate(rot)), dict(enumerate(truth))).median_deg
-              for k, rot in (("ours", sol.rotations), ("ls", ls))}
-    assert median["ours"] < 1.05 * median["ls"]
+def test_planar_grids_at_high_heading_noise_keep_their_edges_and_least_squares() -> None:
+    """15 deg of heading noise on a 12 x 12 grid, six draws: the one-axis model reads about
+    15 deg, cuts at most one true edge a draw, and ends within 5% of least squares' median
+    error on five of six (seed 0: 12.6% above). The three-axis model (the solver's planar
+    test patched off) read 6.5-8.3 deg, cut 3-7 true edges a draw and ended more than 5%
+    above least squares on four (docs/benchmarks.md, "Planar robots: a one-axis noise
+    model")."""
+    import rotavg_ros.core.solver as solver_module
+
+    def median(rot: np.ndarray, truth: np.ndarray) -> float:
+        return evaluate(dict(enumerate(rot)), dict(enumerate(truth))).median_deg
+
+    ratio: dict[int, list[float]] = {1: [], 3: []}
+    cut: dict[int, int] = {1: 0, 3: 0}
+    for seed in range(6):
+        i, j, R, truth = _planar_grid(12, 15.0, seed=seed)
+        n = truth.shape[0]
+        ls = median(refine_least_squares(truth, i, j, R, np.ones(i.size), iterations=50), truth)
+        seen, sol = _axes_seen(i, j, R, n)
+        assert seen == {1} and NOISE_AXES.get() == 3  # (set for the solve only)
+        assert sol.noise_sigma_deg == pytest.approx(15.0, rel=0.25)
+        with mock.patch.object(solver_module, "noise_axes", lambda R: 3):
+            seen3, three = _axes_seen(i, j, R, n)
+        assert seen3 == {3} and three.noise_sigma_deg < 0.6 * 15.0
+        for axes, result in ((1, sol), (3, three)):
+            ratio[axes].append(median(result.rotations, truth) / ls)
+            cut[axes] += int(np.count_nonzero(~result.kept))
+    assert cut[1] <= 3 and cut[3] >= 3 * cut[1]
+    assert sum(r < 1.05 for r in ratio[1]) >= 5
+    assert np.mean(ratio[1]) < np.mean(ratio[3])
+
+
+def test_closure_loop_scale_reads_one_axis_quantiles() -> None:
+    """The closures' loop scale divides by the chi-square quantile of the noise's axes."""
+    rng = np.random.default_rng(7)
+    n = 400
+    i = np.r_[np.arange(n - 1), rng.integers(0, n // 2, 30)]
+    j = np.r_[np.arange(1, n), rng.integers(n // 2, n, 30)]
+    heading = np.cumsum(rng.normal(0.0, math.radians(4.0), n))
+    delta = heading[i] - heading[j] + rng.normal(0.0, math.radians(2.0), i.size)
+    R, w, odometry = rotation_about_axis(Z, delta), np.ones(i.size), np.abs(i - j) == 1
+    three = loop_noise_scale(n, i, j, R, w, odometry)
+    token = NOISE_AXES.set(1)
+    try:
+        one = loop_noise_scale(n, i, j, R, w, odometry)
+    finally:
+        NOISE_AXES.reset(token)
+    assert one / three == pytest.approx(math.sqrt(CHI2_3_Q25 / CHI2_1_Q25), rel=1e-9)
+    assert one == pytest.approx(math.radians(2.0), rel=0.5)  # the heading noise
 
 
 def test_planar_chain_keeps_the_three_axis_model() -> None:
@@ -134,22 +175,21 @@ def test_planar_chain_keeps_the_three_axis_model() -> None:
     assert seen == {3}
 
 
-def test_cross_validation_on_a_planar_graph_starts_l1_from_each_fold() -> None:
+def test_cross_validation_on_planar_graphs_starts_l1_from_each_fold() -> None:
     """Under Gaussian heading noise least squares is the better estimator. The folds' L1 fits
-    started from the least squares of all the edges (held-out ones included) lean to L1
-    and pick it here (10.18 deg median against least squares' 7.98); started from each
-    fold's own least squares (``l1_from_fold``, the solver's choice on planar problems)
-    the folds say least squares."""
-    i, j, R, truth = _planar_grid(8, 17.0, seed=4, diagonals=True)  # no fold splits it
-    w = np.ones(i.size)
-    ls = refine_least_squares(truth, i, j, R, w, iterations=50)
-    leaning = choose_by_cross_validation(ls, i, j, R, w)
-    verdict = choose_by_cross_validation(ls, i, j, R, w, l1_from_fold=True)
-    assert verdict.estimator == LEAST_SQUARES and verdict.held_out_change > 0.0
-    assert verdict.rotations is ls
-    assert leaning.estimator != LEAST_SQUARES
-
-    def median(rot: np.ndarray) -> float:
-        return evaluate(dict(enumerate(rot)), dict(enumerate(truth))).median_deg
-
-    assert median(ls) < 0.9 * median(leaning.rotations)
+    started from the least squares of all the edges (held-out ones included) lean to L1;
+    started from each fold's own least squares (``l1_from_fold``, the solver's choice on
+    planar problems) the folds say least squares more often: six draws of an 8 x 8 grid
+    with diagonals at 17 deg, least squares on 5 against 4 (seed 4: L1 at 10.18 deg median
+    against least squares' 7.98)."""
+    picks = {False: 0, True: 0}
+    for seed in range(6):
+        i, j, R, truth = _planar_grid(8, 17.0, seed=seed, diagonals=True)  # no fold splits
+        w = np.ones(i.size)
+        ls = refine_least_squares(truth, i, j, R, w, iterations=50)
+        for from_fold in (False, True):
+            verdict = choose_by_cross_validation(ls, i, j, R, w, l1_from_fold=from_fold)
+            picks[from_fold] += verdict.estimator == LEAST_SQUARES
+            if verdict.estimator == LEAST_SQUARES:
+                assert verdict.held_out_change > 0.0 and verdict.rotations is ls
+    assert picks[True] >= 5 and picks[True] > picks[False]

@@ -50,7 +50,9 @@ class SolveResult:
     """Edges the filter removed and the verification re-admitted."""
     noise_sigma_deg: float = math.nan
     """Per-axis noise of a unit-weight edge estimated from the data (largest component;
-    NaN when the verification did not run)."""
+    NaN when the verification did not run). On a planar problem (every measurement about one
+    axis, no odometry chain) the heading noise: about twice what the three-axis model read
+    there before the one-axis model."""
     num_untested: int = 0
     """Loop closures (edges off a spanning tree) whose consistency no check could test: the
     ``paper`` profile tests only edges on triangles (or on a triangle-verified tree path);

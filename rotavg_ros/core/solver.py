@@ -232,7 +232,8 @@ class RotationAverager:
         weights multiplied by their ratio. The verification's noise model has one axis where
         every measurement turns about one common axis (a planar problem,
         :func:`~.robust.noise.noise_axes`) and the graph is no odometry chain with sparse
-        loop closures (redundancy at least ``least_squares_below_redundancy``), else three.
+        loop closures (the redundancy of all its edges, false closures included, at least
+        ``least_squares_below_redundancy``), else three.
         On such a chain the three-axis model's tighter reading of heading noise keeps fewer
         false closures, and a true closure lost costs little there: on a planar chain of
         1,000 keyframes with 40% false closures 10-180 deg off (16 draws) the one-axis model

@@ -116,10 +116,10 @@ def loop_noise_scale(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w:
     """The noise scale (per axis of a unit-weight edge, radians) that the loops the closures
     close over the odometry show, whatever any solution says: a true closure's loop angle
     ``theta`` has ``theta^2 ~ sigma^2 (v + own) chi2_3`` (``v`` the odometry variance along
-    it), so ``sigma^2`` is the :data:`LOOP_QUANTILE` quantile of ``theta^2 / (v + own)`` over
-    that of ``chi2_3``. The lower quantile stands while false closures, whose loops are far
-    off, are fewer than about three quarters. NaN with fewer than :data:`LOOP_MIN_CLOSURES`
-    testable closures. ``loops``: :func:`closure_loops` of these edges, if already known."""
+    it; ``chi2_1`` on a planar problem), so ``sigma^2`` is the :data:`LOOP_QUANTILE` quantile
+    of ``theta^2 / (v + own)`` over that of the chi-square. The lower quantile stands while
+    false closures, whose loops are far off, are fewer than about three quarters. NaN with
+    fewer than :data:`LOOP_MIN_CLOSURES` testable closures. ``loops``: :func:`closure_loops` of these edges, if already known."""
     if loops is None:
         loops = closure_loops(num_nodes, i, j, R, w, odometry)
     if loops is None or loops.testable.size < LOOP_MIN_CLOSURES:
