@@ -119,7 +119,8 @@ def loop_noise_scale(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w:
     it; ``chi2_1`` on a planar problem), so ``sigma^2`` is the :data:`LOOP_QUANTILE` quantile
     of ``theta^2 / (v + own)`` over that of the chi-square. The lower quantile stands while
     false closures, whose loops are far off, are fewer than about three quarters. NaN with
-    fewer than :data:`LOOP_MIN_CLOSURES` testable closures. ``loops``: :func:`closure_loops` of these edges, if already known."""
+    fewer than :data:`LOOP_MIN_CLOSURES` testable closures. ``loops``: :func:`closure_loops`
+    of these edges, if already known."""
     if loops is None:
         loops = closure_loops(num_nodes, i, j, R, w, odometry)
     if loops is None or loops.testable.size < LOOP_MIN_CLOSURES:
