@@ -244,3 +244,26 @@ def test_exact_priority_ties_fall_back_on_weight_then_input_order(
     assert chosen == [expected]
     assert res.kept[pairs.index(expected)]
     assert not res.kept[pairs.index((1, 3) if expected == (2, 3) else (2, 3))]
+
+
+def test_parallel_edges_enter_the_spanning_tree_by_their_best_rank() -> None:
+    """A node pair measured more than once (the array API does not merge them; the graph
+    store does): the tree takes the best-ranked of each pair. Before, the sparse matrix
+    summed their ranks, which named another edge or none (an IndexError on a tree of
+    parallel edges)."""
+    from rotavg_ros.core.options import SolverOptions
+    from rotavg_ros.core.solver import average_rotations
+
+    rng = np.random.default_rng(3)
+    truth = random_rotations(3, rng)
+    i = np.array([0, 0, 1, 1, 1])
+    j = np.array([1, 1, 2, 2, 2])
+    R = np.einsum("eab,ecb->eac", truth[i], truth[j])
+    R[0] = R[0] @ rotation_about_axis(np.array([0.0, 0.0, 1.0]), 0.3)  # one copy off
+    weight = np.array([1.0, 2.0, 1.0, 1.0, 3.0])  # the heavier copy ranks first
+    result = filter_edges(i, j, R, weight, 3, sigma=0.2)
+    assert np.flatnonzero(result.in_tree).tolist() == [1, 4]
+    for profile in ("paper", "default"):
+        solved = average_rotations(3, i, j, R, weight, SolverOptions.for_profile(profile))
+        rel = np.einsum("ab,cb->ac", solved.rotations[1], solved.rotations[2])
+        assert chordal_distance(rel, truth[1] @ truth[2].T) < 1e-6

@@ -192,9 +192,15 @@ def filter_edges(
     mean_err[tested] = total[tested] / count[tested]
     order = priority_order(support, mean_err, weight, use_support_count)
     # Kruskal via scipy: MST on ranks (1 = best) gives the greedy forest of this order.
+    # Of parallel edges (one node pair measured more than once) only the best-ranked one
+    # enters the matrix: a sparse matrix sums duplicate entries, and the sum of two ranks
+    # named another edge or none (an IndexError on a tree of parallel edges).
     rank = np.empty(i.size)
     rank[order] = np.arange(1, i.size + 1)
-    mst = minimum_spanning_tree(coo_matrix((rank, (i, j)), shape=(num_nodes, num_nodes)))
+    pair = np.minimum(i, j) * num_nodes + np.maximum(i, j)
+    best = order[np.unique(pair[order], return_index=True)[1]]  # first in rank order
+    mst = minimum_spanning_tree(coo_matrix((rank[best], (i[best], j[best])),
+                                           shape=(num_nodes, num_nodes)))
     mst = mst.tocoo()
     rank_to_edge = order  # rank r -> edge order[r - 1]
     tree_edges = rank_to_edge[np.rint(mst.data).astype(np.int64) - 1]
