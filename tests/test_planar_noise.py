@@ -57,6 +57,18 @@ def _planar_grid(side: int, noise_deg: float, seed: int, diagonals: bool = False
     return i, j, rotation_about_axis(Z, delta), rotation_about_axis(Z, heading)
 
 
+def _planar_chain(n: int, closures: int, seed: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A planar robot's odometry chain of ``n`` keyframes and ``closures`` true loop
+    closures from its first half to its second, 2 deg of heading noise: ``(i, j, R)``."""
+    rng = np.random.default_rng(seed)
+    i = np.r_[np.arange(n - 1), rng.integers(0, n // 2, closures)]
+    j = np.r_[np.arange(1, n), rng.integers(n // 2, n, closures)]
+    heading = np.cumsum(rng.normal(0.0, math.radians(4.0), n))
+    delta = heading[i] - heading[j] + rng.normal(0.0, math.radians(2.0), i.size)
+    return i, j, rotation_about_axis(Z, delta)
+
+
 def test_noise_axes_tells_planar_measurements_from_3d_ones() -> None:
     rng = np.random.default_rng(0)
     headings = rotation_about_axis(Z, rng.uniform(-math.pi, math.pi, 50))
@@ -145,13 +157,9 @@ def test_planar_grids_at_high_heading_noise_keep_their_edges_and_least_squares()
 
 def test_closure_loop_scale_reads_one_axis_quantiles() -> None:
     """The closures' loop scale divides by the chi-square quantile of the noise's axes."""
-    rng = np.random.default_rng(7)
     n = 400
-    i = np.r_[np.arange(n - 1), rng.integers(0, n // 2, 30)]
-    j = np.r_[np.arange(1, n), rng.integers(n // 2, n, 30)]
-    heading = np.cumsum(rng.normal(0.0, math.radians(4.0), n))
-    delta = heading[i] - heading[j] + rng.normal(0.0, math.radians(2.0), i.size)
-    R, w, odometry = rotation_about_axis(Z, delta), np.ones(i.size), np.abs(i - j) == 1
+    i, j, R = _planar_chain(n, closures=30, seed=7)
+    w, odometry = np.ones(i.size), np.abs(i - j) == 1
     three = loop_noise_scale(n, i, j, R, w, odometry)
     token = NOISE_AXES.set(1)
     try:
@@ -165,13 +173,8 @@ def test_closure_loop_scale_reads_one_axis_quantiles() -> None:
 def test_planar_chain_keeps_the_three_axis_model() -> None:
     """An odometry chain with sparse loop closures (redundancy below
     ``least_squares_below_redundancy``) stays three-axis even when planar."""
-    rng = np.random.default_rng(5)
-    n = 300
-    i = np.r_[np.arange(n - 1), rng.integers(0, n // 2, 12)]
-    j = np.r_[np.arange(1, n), rng.integers(n // 2, n, 12)]
-    heading = np.cumsum(rng.normal(0.0, math.radians(4.0), n))
-    delta = heading[i] - heading[j] + rng.normal(0.0, math.radians(2.0), i.size)
-    seen, _ = _axes_seen(i, j, rotation_about_axis(Z, delta), n)
+    i, j, R = _planar_chain(300, closures=12, seed=5)
+    seen, _ = _axes_seen(i, j, R, 300)
     assert seen == {3}
 
 
