@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from unittest import mock
 
 import numpy as np
+import pytest
 import torch
 
-from rotavg_ros.core.chordal_init import central_node, chordal_rotations
+from rotavg_ros.core import chordal_init
+from rotavg_ros.core.chordal_init import anchor_candidates, central_node, chordal_rotations
 from rotavg_ros.core.dmf.common import FitSpec
 from rotavg_ros.core.dmf.precondition import LaplacianPreconditioner
 from rotavg_ros.core.dmf.sparse import fit_symmetric_lbfgs, huber_delta, shows_outliers
@@ -101,6 +104,35 @@ def test_chordal_start_is_anchored_at_a_central_node_and_gauged_at_node_0() -> N
     R = np.einsum("eab,ecb->eac", truth[i], truth[j])
     out = chordal_rotations(23, i, j, R, np.ones(i.size))
     assert np.degrees(geodesic_distance(out, truth)).max() < 1e-5  # (arccos near 1)
+    # The relaxation's anchors: the centre first, then a quarter and three quarters along.
+    assert anchor_candidates(23, i, j) == [11, 5, 17]  # (the path runs from b back to a)
+
+
+def test_chordal_start_keeps_the_anchor_of_the_lowest_chordal_cost() -> None:
+    """At high noise the relaxation depends on its anchor; the kept solution's chordal cost
+    is the lowest of the candidates', and below the central anchor's where that differs."""
+    rng = np.random.default_rng(4)
+    n = 300
+    truth = random_rotations(n, rng)
+    i = np.r_[np.arange(n - 1), rng.integers(0, n, 200)]
+    j = np.r_[np.arange(1, n), rng.integers(0, n, 200)]
+    keep = i != j
+    i, j = i[keep], j[keep]
+    R = np.einsum("eab,ecb->eac", truth[i], truth[j])
+    R = np.einsum("eab,ebc->eac", exp_map(rng.normal(0.0, math.radians(25.0), (i.size, 3))), R)
+    w = np.ones(i.size)
+
+    def cost(rot: np.ndarray) -> float:
+        miss = rot[i] - np.einsum("eab,ebc->eac", R, rot[j])
+        return float(np.sum(miss * miss))
+
+    chosen = cost(chordal_rotations(n, i, j, R, w))
+    each = []
+    for fraction in chordal_init.ANCHOR_FRACTIONS:
+        with mock.patch.object(chordal_init, "ANCHOR_FRACTIONS", (fraction,)):
+            each.append(cost(chordal_rotations(n, i, j, R, w)))
+    assert chosen == pytest.approx(min(each), rel=1e-12)
+    assert len(set(np.round(each, 6))) > 1  # the anchors differ here
 
 
 def _planar_loop_chain(n: int, seed: int, noise_deg: float
