@@ -403,7 +403,9 @@ def test_default_profile_solves_a_chain_with_false_closures_like_the_oracle() ->
     assert default.verification == "robust" and default.depth == 0
     assert np.array_equal(~default.kept, bad)
     assert _mean_error(default.rotations, truth) < 1.1 * _mean_error(oracle.rotations, truth)
-    assert _mean_error(paper.rotations, truth) > 5 * _mean_error(default.rotations, truth)
+    # The paper profile keeps the false closures: 9.07 deg mean against 2.84 (before the
+    # relaxation's three anchors, whose start the paper's sparse fit shares: 43.8).
+    assert _mean_error(paper.rotations, truth) > 2.5 * _mean_error(default.rotations, truth)
 
 
 def _default_with_and_without(
