@@ -18,11 +18,12 @@ anchors the last key of a nested-dissection ordering, also a central node, for t
 
 One anchor can still be unlucky: on a planar torus3D at 17 deg of heading noise (stress seed
 20) the central node's relaxation read 57.9 deg median and least squares from it ended in a
-local minimum at 54.8 deg, where anchors a quarter of the way along the same path reach the
-optimum (9.5 deg). So the relaxation is solved at a few anchors along the double sweep's
-path (:data:`ANCHOR_FRACTIONS`) and the projected solution with the lowest chordal cost
-``sum w ||R_i - R_ij R_j||_F^2`` is kept (there: 1020.9 at the centre, 864.7 at the
-three-quarter point); where the centre is cheapest the result is the one-anchor result.
+local minimum at 54.8 deg, where from the node three quarters of the way along the same
+path it reaches the optimum (9.5 deg). So the relaxation is solved at a few anchors along
+the double sweep's path (:data:`ANCHOR_FRACTIONS`) and the projected solution with the
+lowest chordal cost ``sum w ||R_i - R_ij R_j||_F^2`` is kept (there: 1020.9 at the centre,
+864.7 at the three-quarter point); where the centre is cheapest the result is the one-anchor
+result.
 """
 
 from __future__ import annotations
