@@ -135,6 +135,43 @@ def test_chordal_start_keeps_the_anchor_of_the_lowest_chordal_cost() -> None:
     assert len(set(np.round(each, 6))) > 1  # the anchors differ here
 
 
+def test_chordal_start_one_factorization_matches_eliminating_each_anchor() -> None:
+    """Every anchor's relaxation comes from one factor of the softly pinned Laplacian; it is
+    the minimiser that eliminating the anchor's block from the Laplacian gives."""
+    rng = np.random.default_rng(7)
+    n = 60
+    truth = random_rotations(n, rng)
+    i = np.r_[np.arange(n - 1), rng.integers(0, n, 40)]
+    j = np.r_[np.arange(1, n), rng.integers(0, n, 40)]
+    keep = i != j
+    i, j = i[keep], j[keep]
+    R = np.einsum("eab,ecb->eac", truth[i], truth[j])
+    R = np.einsum("eab,ebc->eac", exp_map(rng.normal(0.0, math.radians(30.0), (i.size, 3))), R)
+    w = rng.uniform(0.5, 2.0, i.size)
+    L = np.zeros((3 * n, 3 * n))
+    for e in range(i.size):
+        a, b = slice(3 * i[e], 3 * i[e] + 3), slice(3 * j[e], 3 * j[e] + 3)
+        L[a, a] += w[e] * np.eye(3)
+        L[b, b] += w[e] * np.eye(3)
+        L[a, b] -= w[e] * R[e]
+        L[b, a] -= w[e] * R[e].T
+    centre, *others = anchor_candidates(n, i, j)
+    pin = 2.5
+    M = L.copy()
+    M[3 * centre:3 * centre + 3, 3 * centre:3 * centre + 3] += pin * np.eye(3)
+    Q = np.linalg.solve(M, np.eye(3 * n)[:, 3 * centre:3 * centre + 3])
+    for anchor in [centre, *others]:
+        P = np.linalg.solve(M, np.eye(3 * n)[:, 3 * anchor:3 * anchor + 3])
+        X = chordal_init._anchored_solution(P, Q, anchor, centre, pin)
+        fixed = np.arange(3 * anchor, 3 * anchor + 3)
+        free = np.setdiff1d(np.arange(3 * n), fixed)
+        direct = np.empty((3 * n, 3))
+        direct[fixed] = np.eye(3)
+        direct[free] = np.linalg.solve(L[np.ix_(free, free)], -L[np.ix_(free, fixed)])
+        assert np.abs(X - direct).max() < 1e-9
+    assert len(others) == 2
+
+
 def _planar_loop_chain(n: int, seed: int, noise_deg: float
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``_loop_chain``'s edges on a planar robot: every rotation about z, heading noise
