@@ -159,9 +159,9 @@ def test_chordal_start_one_factorization_matches_eliminating_each_anchor() -> No
     pin = 2.5
     M = L.copy()
     M[3 * centre:3 * centre + 3, 3 * centre:3 * centre + 3] += pin * np.eye(3)
-    Q = np.linalg.solve(M, np.eye(3 * n)[:, 3 * centre:3 * centre + 3])
+    Q = np.asarray(np.linalg.solve(M, np.eye(3 * n)[:, 3 * centre:3 * centre + 3]), np.float64)
     for anchor in [centre, *others]:
-        P = np.linalg.solve(M, np.eye(3 * n)[:, 3 * anchor:3 * anchor + 3])
+        P = np.asarray(np.linalg.solve(M, np.eye(3 * n)[:, 3 * anchor:3 * anchor + 3]), np.float64)
         X = chordal_init._anchored_solution(P, Q, anchor, centre, pin)
         fixed = np.arange(3 * anchor, 3 * anchor + 3)
         free = np.setdiff1d(np.arange(3 * n), fixed)
