@@ -108,18 +108,25 @@ def test_chordal_start_is_anchored_at_a_central_node_and_gauged_at_node_0() -> N
     assert anchor_candidates(23, i, j) == [11, 5, 17]  # (the path runs from b back to a)
 
 
-def test_chordal_start_keeps_the_anchor_of_the_lowest_chordal_cost() -> None:
-    """At high noise the relaxation depends on its anchor; the kept solution's chordal cost
-    is the lowest of the candidates', and below the central anchor's where that differs."""
-    rng = np.random.default_rng(4)
-    n = 300
+def _noisy_chain_with_closures(n: int, closures: int, noise_deg: float,
+                               rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """A chain of ``n`` nodes plus ``closures`` random edges (self-loops dropped), every
+    measurement ``R_ij = R_i R_j^T`` turned by ``N(0, noise_deg)`` per axis."""
     truth = random_rotations(n, rng)
-    i = np.r_[np.arange(n - 1), rng.integers(0, n, 200)]
-    j = np.r_[np.arange(1, n), rng.integers(0, n, 200)]
+    i = np.r_[np.arange(n - 1), rng.integers(0, n, closures)]
+    j = np.r_[np.arange(1, n), rng.integers(0, n, closures)]
     keep = i != j
     i, j = i[keep], j[keep]
     R = np.einsum("eab,ecb->eac", truth[i], truth[j])
-    R = np.einsum("eab,ebc->eac", exp_map(rng.normal(0.0, math.radians(25.0), (i.size, 3))), R)
+    noise = exp_map(rng.normal(0.0, math.radians(noise_deg), (i.size, 3)))
+    return i, j, np.einsum("eab,ebc->eac", noise, R)
+
+
+def test_chordal_start_keeps_the_anchor_of_the_lowest_chordal_cost() -> None:
+    """At high noise the relaxation depends on its anchor; the kept solution's chordal cost
+    is the lowest of the candidates', and below the central anchor's where that differs."""
+    n = 300
+    i, j, R = _noisy_chain_with_closures(n, 200, 25.0, np.random.default_rng(4))
     w = np.ones(i.size)
 
     def cost(rot: np.ndarray) -> float:
@@ -140,13 +147,7 @@ def test_chordal_start_one_factorization_matches_eliminating_each_anchor() -> No
     the minimiser that eliminating the anchor's block from the Laplacian gives."""
     rng = np.random.default_rng(7)
     n = 60
-    truth = random_rotations(n, rng)
-    i = np.r_[np.arange(n - 1), rng.integers(0, n, 40)]
-    j = np.r_[np.arange(1, n), rng.integers(0, n, 40)]
-    keep = i != j
-    i, j = i[keep], j[keep]
-    R = np.einsum("eab,ecb->eac", truth[i], truth[j])
-    R = np.einsum("eab,ebc->eac", exp_map(rng.normal(0.0, math.radians(30.0), (i.size, 3))), R)
+    i, j, R = _noisy_chain_with_closures(n, 40, 30.0, rng)
     w = rng.uniform(0.5, 2.0, i.size)
     L = np.zeros((3 * n, 3 * n))
     for e in range(i.size):
