@@ -110,17 +110,20 @@ def _components(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: Flo
     if use is None:
         use = (np.ones(q.shape, bool) if math.isinf(cut)
                else q <= cut2 * np.maximum(1.0 - h, 0.0))  # standardized residual <= cut
-    # The leverages sum to the fit's rank: the class of the larger (noisier) leverages
-    # takes its sum from the other's.
-    rank = _rank(rot.shape[0], i, j)
-    noisier = odometry if np.sum(h[odometry] ** 2) > np.sum(h[~odometry] ** 2) else ~odometry
-    h_sum = {True: rank - float(np.sum(h[~noisier])), False: float(np.sum(h[~noisier]))}
+    # The leverages sum to the fit's rank. The probes' error grows with the leverage, so
+    # the class of the larger leverages takes its sum from the rank minus the other's.
+    fitted = w > 0
+    rank = _rank(rot.shape[0], i[fitted], j[fitted])
+    odo_h, loop_h = float(np.sum(h[odometry])), float(np.sum(h[~odometry]))
+    if np.sum(h[odometry] ** 2) > np.sum(h[~odometry] ** 2):
+        odo_h = rank - loop_h
+    else:
+        loop_h = rank - odo_h
     out: list[float] = []
     spreads: list[float] = []
-    for cls, g in ((odometry, odometry & use), (~odometry, ~odometry & use)):
-        left_out = cls & ~use
-        counted_h = h_sum[bool(np.array_equal(cls, noisier))] - float(np.sum(h[left_out]))
-        r = float(np.count_nonzero(g)) - counted_h
+    for cls, cls_h in ((odometry, odo_h), (~odometry, loop_h)):
+        g = cls & use
+        r = float(np.count_nonzero(g)) - (cls_h - float(np.sum(h[cls & ~use])))
         if not r >= MIN_REDUNDANCY:
             return math.nan, math.nan, math.nan, math.nan, use
         s2 = float(np.sum(q[g])) / (3.0 * r)
