@@ -92,10 +92,10 @@ class ClassNoise:
 
 def _components(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                 odometry: BoolArray, use: BoolArray | None, cut: float, seed: int,
-                ) -> tuple[float, float, float, float, BoolArray]:
+                rank: int) -> tuple[float, float, float, float, BoolArray]:
     """``(s_odo^2, s_loop^2, relative variance of each, edges counted)`` on the fit ``rot``
     of these edges, counting the edges ``use`` (None: those whose standardized residual is
-    at most ``cut``)."""
+    at most ``cut``); ``rank``: :func:`_rank` of the fitted edges."""
     q = w * residual_angles(rot, i, j, R) ** 2
     cut2 = cut * cut
 
@@ -112,8 +112,6 @@ def _components(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: Flo
                else q <= cut2 * np.maximum(1.0 - h, 0.0))  # standardized residual <= cut
     # The leverages sum to the fit's rank. The probes' error grows with the leverage, so
     # the class of the larger leverages takes its sum from the rank minus the other's.
-    fitted = w > 0
-    rank = _rank(rot.shape[0], i[fitted], j[fitted])
     odo_h, loop_h = float(np.sum(h[odometry])), float(np.sum(h[~odometry]))
     if np.sum(h[odometry] ** 2) > np.sum(h[~odometry] ** 2):
         odo_h = rank - loop_h
@@ -165,11 +163,13 @@ def class_noise(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: Flo
     gs: list[float] = []
     use: BoolArray | None = None
     f, ratio, z = 0.0, math.nan, math.nan
+    fitted = ww > 0  # the same edges at every refit (the odometry's factor is positive)
+    rank = _rank(rot.shape[0], ii[fitted], jj[fitted])
     for _ in range(ITERATIONS):
         wk = ww * np.where(odo, math.exp(f), 1.0)
         rot = refine_least_squares(rot, ii, jj, RR, wk)
         s_odo, s_loop, v_odo, v_loop, use = _components(rot, ii, jj, RR, wk, odo, use, cut,
-                                                        seed)
+                                                        seed, rank)
         if not (s_odo > 0.0 and s_loop > 0.0 and math.isfinite(v_odo + v_loop)):
             return None
         g = math.log(s_odo / s_loop)
