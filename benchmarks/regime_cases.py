@@ -135,23 +135,26 @@ def random_axes(n: int, rng: np.random.Generator) -> FloatArray:
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-def perturb(R: FloatArray, sigma_deg: float, rng: np.random.Generator,
+def perturb(R: FloatArray, sigma_deg: float | FloatArray, rng: np.random.Generator,
             model: str = "folded") -> FloatArray:
     """``R_k N_k``: ``N_k`` a rotation by ``|N(0, sigma)|`` about a random axis (``folded``),
     or ``exp`` of a tangent vector with ``N(0, sigma / sqrt(3))`` per axis (``tangent``) or
-    ``N(0, sigma ANISOTROPY)`` (``anisotropic``)."""
+    ``N(0, sigma ANISOTROPY)`` (``anisotropic``). ``sigma_deg``: one level for every edge,
+    or one per edge (the same draws as one level where they are equal)."""
     if model not in NOISE_MODELS:
         raise ValueError(f"noise model must be one of {NOISE_MODELS}, got {model!r}")
     n = R.shape[0]
-    if sigma_deg <= 0 or n == 0:
+    sigma = np.radians(np.asarray(sigma_deg, dtype=float))
+    if n == 0 or not np.any(sigma > 0):
         return R.copy()
+    column = sigma[:, None] if sigma.ndim else sigma
     if model == "tangent":
-        omega = rng.normal(0.0, np.radians(sigma_deg) / np.sqrt(3.0), size=(n, 3))
+        omega = rng.normal(0.0, column / np.sqrt(3.0), size=(n, 3))
         return R @ exp_map(omega)
     if model == "anisotropic":
-        omega = rng.normal(0.0, 1.0, size=(n, 3)) * np.radians(sigma_deg) * ANISOTROPY
+        omega = rng.normal(0.0, 1.0, size=(n, 3)) * column * ANISOTROPY
         return R @ exp_map(omega)
-    angles = np.abs(rng.normal(0.0, np.radians(sigma_deg), size=n))
+    angles = np.abs(rng.normal(0.0, sigma, size=n))
     return R @ rotation_about_axis(random_axes(n, rng), angles)
 
 
@@ -471,6 +474,44 @@ def unweighted_case(name: str, base: RegimeCase, *, odo_noise_deg: float,
             f"loop closures {loop_noise_deg:g} deg, every weight 1")
     return replace(case, weight=None, description=desc,
                    sigma_deg=max(odo_noise_deg, loop_noise_deg, 1.0))
+
+
+def heteroscedastic_case(name: str, base: RegimeCase, *, sigma_deg: float,
+                         spread: float = 0.7, seed: int = 0,
+                         noise_model: str = "folded") -> RegimeCase:
+    """``base``'s edges, truth and false edges, its true edges drawn again, each at its own
+    noise level ``sigma_deg exp(N(0, spread))`` (lognormal: at ``spread`` 0.7 the middle
+    half of the edges between 0.62 and 1.6 ``sigma_deg``, one in twenty above 3.2), and sent
+    unweighted. What this tests: noise whose scale differs from edge to edge and which
+    nothing reports, as a front end's matches of varying quality give it: heavy tails
+    that are no outliers, where least squares in the bulk loses to a robust estimator."""
+    rng = rng_for(name, seed)
+    inlier = np.ones(base.num_edges, bool) if base.inlier is None else base.inlier
+    sigma = sigma_deg * np.exp(rng.normal(0.0, spread, base.num_edges))
+    R = base.R.copy()
+    R[inlier] = perturb(relative(base.gt, base.i[inlier], base.j[inlier]), sigma[inlier],
+                        rng, noise_model)
+    desc = (f"heteroscedastic: {base.description or base.name}, each true edge at "
+            f"{sigma_deg:g} deg x lognormal({spread:g}), unweighted")
+    return RegimeCase(name, base.family, base.num_nodes, base.i, base.j, R, base.gt, None,
+                      base.inlier, sigma_deg, desc, max(sigma_deg, 1.0))
+
+
+def near_false_case(name: str, base: RegimeCase, *, low_deg: float = 5.0,
+                    high_deg: float = 30.0, seed: int = 0) -> RegimeCase:
+    """``base`` with each false edge drawn again ``U(low_deg, high_deg)`` off the truth
+    (about a random axis) instead of Haar-random at least :data:`MIN_FALSE_DEG` off. What
+    this tests: wrong matches close to the truth, as a registration stuck in a nearby
+    minimum gives them; on a chain the odometry's drift explains most of them."""
+    rng = rng_for(name, seed)
+    bad = np.flatnonzero(~base.inlier) if base.inlier is not None else np.zeros(0, np.int64)
+    angles = np.radians(rng.uniform(low_deg, high_deg, bad.size))
+    R = base.R.copy()
+    R[bad] = relative(base.gt, base.i[bad], base.j[bad]) @ rotation_about_axis(
+        random_axes(bad.size, rng), angles)
+    desc = (f"near: {base.description or base.name}, its false edges "
+            f"{low_deg:g}-{high_deg:g} deg off the truth")
+    return replace(base, name=name, R=R, description=desc)
 
 
 # ------------------------------------------------------- chains in pieces, revisited routes

@@ -1,6 +1,6 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Forty-one cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+Forty-seven cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
 with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
@@ -15,7 +15,10 @@ SLAM front end reports them (odometry at 0.5 deg, loop closures at 3 deg, each e
 weighted by its information ``1 / sigma^2``; :func:`~benchmarks.regime_cases.weighted_case`)
 on suite topologies with false closures; and four of those measurements sent without their
 weights (every weight 1, as a front end that reports no covariances sends them;
-:func:`~benchmarks.regime_cases.unweighted_case`). They look
+:func:`~benchmarks.regime_cases.unweighted_case`); four with noise whose level differs
+from edge to edge and is not reported (lognormal about 2-5 deg;
+:func:`~benchmarks.regime_cases.heteroscedastic_case`); and two whose false edges are only
+5-30 deg off the truth (:func:`~benchmarks.regime_cases.near_false_case`). They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
 ``paper`` profile (ours, the oracle, every installed peer) as the suite does
@@ -46,6 +49,8 @@ from benchmarks.regime_cases import (
     RegimeCase,
     chain_case,
     dense_case,
+    heteroscedastic_case,
+    near_false_case,
     pieces_case,
     planar_case,
     revisit_case,
@@ -92,6 +97,14 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
     def weighted(name: str, base: Callable[[], RegimeCase]) -> Callable[[], RegimeCase]:
         return lambda: weighted_case(name, base(), odo_noise_deg=0.5, loop_noise_deg=3.0,
                                      seed=seed, noise_model=model)
+
+    def hetero(name: str, base: Callable[[], RegimeCase], sigma: float
+               ) -> Callable[[], RegimeCase]:
+        return lambda: heteroscedastic_case(name, base(), sigma_deg=sigma, seed=seed,
+                                            noise_model=model)
+
+    def near(name: str, base: Callable[[], RegimeCase]) -> Callable[[], RegimeCase]:
+        return lambda: near_false_case(name, base(), seed=seed)
 
     return [
         slam("stress/torus3D/noise5", "torus3D", noise_deg=5.0),
@@ -164,6 +177,18 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                  slam("slam/torus3D/rand10", "torus3D", random_false=0.10)),
         weighted("stress/weighted/chain/1000/rand30",
                  chain("chain/1000/rand30", 1000, closures=36, false_random=0.30)),
+        hetero("stress/heteroscedastic/parking-garage/clean",
+               slam("slam/parking-garage/noise1", "parking-garage"), 3.0),
+        hetero("stress/heteroscedastic/sphere2500/rand5",
+               slam("slam/sphere2500/rand5", "sphere2500", random_false=0.05), 2.0),
+        hetero("stress/heteroscedastic/torus3D/clean",
+               slam("slam/torus3D/noise1", "torus3D"), 5.0),
+        hetero("stress/heteroscedastic/chain/1000/rand20",
+               chain("chain/1000/rand20", 1000, closures=60, false_random=0.20), 2.0),
+        near("stress/near/sphere2500/rand10",
+             slam("slam/sphere2500/rand10", "sphere2500", random_false=0.10)),
+        near("stress/near/chain/1000/rand30",
+             chain("chain/1000/rand30", 1000, closures=60, false_random=0.30)),
     ]
 
 

@@ -81,8 +81,13 @@ the regime benchmark's view graphs with 30-50% outliers, where it beat both leas
 and the L1 fit; a planar graph's sparse fit before
 :func:`~rotavg_ros.core.dmf.sparse.huber_delta` counted only the entries that carry
 noise: an L1 fit): where least squares
-wins the cross-validation, its optimum replaces that fit; where the alternative wins, the
-robust fit stands instead of the alternative's. (The least-squares-like solutions there:
+wins the cross-validation, its optimum replaces that fit; where L1 wins, the robust fit
+stands instead of L1's; where Huber wins (the folds keep a tree: a pose graph), Huber's fit
+replaces it. A pose graph's sparse DMF fit is least squares in the bulk (its Huber
+``delta`` is 30 x the median entry; it reweights only beyond 5 x the median residual), so
+a verdict for Huber over least squares speaks against that fit too: on pose graphs with
+heteroscedastic noise (each edge's sigma lognormal) it had kept the DMF fit 10-45% above
+Huber's (docs/benchmarks.md, "Huber over a robust fit"). (The least-squares-like solutions there:
 within 0.01%. At 0.1%, measured on the stress variants at seed 20, three 3D graphs whose
 L1 or Huber fit had replaced a solution 0.1-1% above the optimum kept that solution
 instead, up to 37% worse: the 1% stays. Where least squares wins over a least-squares-like
@@ -101,8 +106,8 @@ class EstimatorVerdict:
     """The cross-validation's answer: ``estimator`` is the estimator whose fit of all the
     edges predicts held-out edges better, :data:`LEAST_SQUARES`, :data:`L1` or
     :data:`HUBER`; ``rotations`` is that fit where ``replaced``, else the given solution
-    (no verdict, or the alternative won over a given solution that is no least squares:
-    that robust fit stands). ``held_out_change`` is the held-out sum of weighted squared
+    (no verdict, or L1 won over a given solution that is no least squares: that robust
+    fit stands). ``held_out_change`` is the held-out sum of weighted squared
     residuals of the alternative minus least squares, over least squares' in-sample sum
     (negative: the alternative predicts the held-out edges better), over the
     ``folds_run`` folds that ran and scaled to all of them; NaN (0 folds run) where there
@@ -173,7 +178,8 @@ def choose_by_cross_validation(
     (:data:`EARLY_STOP_QUANTILES`). Where ``rot`` is least squares
     (:data:`LEAST_SQUARES_TOLERANCE`) it stands, or the alternative's fit replaces it where
     that predicts the held-out edges better; where ``rot`` is a robust fit, it stands, or
-    the least-squares optimum replaces it where least squares predicts them better. Where
+    the least-squares optimum replaces it where least squares predicts them better, or
+    Huber's fit where Huber does (:data:`LEAST_SQUARES_TOLERANCE`). Where
     leaving out a fold would split the graph (beyond nodes left without an edge, which keep
     their rotation in the fold's fits), the ``tree`` edges (a spanning tree) stay in every
     fold's fit and the alternative is Huber's estimator, else L1. No verdict (``rot``
@@ -211,11 +217,12 @@ def choose_by_cross_validation(
     if change >= 0.0:  # least squares: its optimum in a robust fit's place, else rot
         return EstimatorVerdict(ls if robust else rot, LEAST_SQUARES, change, run,
                                 tree_kept, replaced=robust, robust_given=robust)
-    if robust:  # a robust fit already: it stands
+    if robust and alternative == L1:  # a robust fit of a view graph already: it stands
         return EstimatorVerdict(rot, alternative, change, run, tree_kept,
                                 replaced=False, robust_given=True)
     return EstimatorVerdict(alternative_fit(alternative, ls, i, j, R, w, median),
-                            alternative, change, run, tree_kept, replaced=True)
+                            alternative, change, run, tree_kept, replaced=True,
+                            robust_given=robust)
 
 
 def held_out_difference(ls: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
