@@ -296,8 +296,9 @@ class VerifyOptions:
     torus3D), a spanning tree stays in every fold's fit and the alternative is a Huber fit
     instead of L1 (``+huber``; before, no verdict there). Where the kept solution is a robust
     fit (more than 1% above the least-squares optimum's cost), least squares' optimum
-    replaces it where least squares wins (``+ls``), else it stands. Off: the kept solution
-    stands."""
+    replaces it where least squares wins (``+ls``), Huber's fit where Huber wins (a pose
+    graph's DMF fit is least squares in the bulk), and it stands where L1 wins. Off: the
+    kept solution stands."""
     l1_max_nodes: int = field(default=10000, metadata=_flat("l1_max_nodes"))
     """Largest graph that ``l1_by_cross_validation`` runs on. It costs 100-320 Gauss-Newton
     steps on the inliers (3-10 folds), each as costly as one of the verification's: about

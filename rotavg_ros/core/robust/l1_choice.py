@@ -75,25 +75,26 @@ the least-squares median standardized residual ``sqrt(w_e) |e_e|``: residuals be
 count as in least squares, those above with weight ``HUBER_K median / |residual|``."""
 LEAST_SQUARES_TOLERANCE = 0.01
 """The given solution stands for least squares where its weighted squared cost is within
-this fraction of the least-squares optimum's. Else it is some other estimator, a robust
-fit (a sparse DMF fit that reweighted its edges towards L1: 8.5-14.5% above the optimum on
-the regime benchmark's view graphs with 30-50% outliers, where it beat both least squares
-and the L1 fit; a planar graph's sparse fit before
-:func:`~rotavg_ros.core.dmf.sparse.huber_delta` counted only the entries that carry
-noise: an L1 fit): where least squares
-wins the cross-validation, its optimum replaces that fit; where L1 wins, the robust fit
-stands instead of L1's; where Huber wins (the folds keep a tree: a pose graph), Huber's fit
-replaces it. A pose graph's sparse DMF fit is least squares in the bulk (its Huber
-``delta`` is 30 x the median entry; it reweights only beyond 5 x the median residual), so
-a verdict for Huber over least squares speaks against that fit too: on pose graphs with
-heteroscedastic noise (each edge's sigma lognormal) it had kept the DMF fit 10-45% above
-Huber's (docs/benchmarks.md, "Huber over a robust fit"). (The least-squares-like solutions there:
-within 0.01%. At 0.1%, measured on the stress variants at seed 20, three 3D graphs whose
-L1 or Huber fit had replaced a solution 0.1-1% above the optimum kept that solution
-instead, up to 37% worse: the 1% stays. Where least squares wins over a least-squares-like
-solution, that solution stands: replacing it by the geodesic optimum moved
-real/smallGrid3D from 0.048 to 0.070 deg, its certified reference being closer to the
-chordal-like fit.)"""
+this fraction of the least-squares optimum's. (The least-squares-like solutions of the
+regime benchmark are within 0.01%. At 0.1%, measured on the stress variants at seed 20,
+three 3D graphs whose L1 or Huber fit had replaced a solution 0.1-1% above the optimum kept
+that solution instead, up to 37% worse: the 1% stays. Where least squares wins over a
+least-squares-like solution, that solution stands: replacing it by the geodesic optimum
+moved real/smallGrid3D from 0.048 to 0.070 deg, its certified reference being closer to
+the chordal-like fit.)
+
+Above it the solution is a robust fit: a sparse DMF fit that reweighted its edges (or, on
+a planar graph before :func:`~rotavg_ros.core.dmf.sparse.huber_delta` counted only the
+entries that carry noise, an L1 fit). Where least squares wins the cross-validation, its
+optimum replaces that fit. Where L1 wins, the robust fit stands instead of L1's: on the
+regime benchmark's view graphs with 30-50% outliers the DMF fit, 8.5-14.5% above the
+optimum, beat both least squares and the L1 fit. Where Huber wins (the folds keep a
+spanning tree: pose graphs whose odometry runs are bridges), Huber's fit replaces it. A
+pose graph's sparse DMF fit is least squares in the bulk (its Huber ``delta`` is 30 x the
+median entry, and it reweights only beyond 5 x the median residual), so a verdict for
+Huber over least squares speaks against it too. On pose graphs with heteroscedastic noise
+(each edge's sigma lognormal), Huber's fit in its place lowered the median by 9-45%
+(docs/benchmarks.md, "Huber over a robust fit")."""
 
 
 LEAST_SQUARES = "least squares"
@@ -106,8 +107,9 @@ class EstimatorVerdict:
     """The cross-validation's answer: ``estimator`` is the estimator whose fit of all the
     edges predicts held-out edges better, :data:`LEAST_SQUARES`, :data:`L1` or
     :data:`HUBER`; ``rotations`` is that fit where ``replaced``, else the given solution
-    (no verdict, or L1 won over a given solution that is no least squares: that robust
-    fit stands). ``held_out_change`` is the held-out sum of weighted squared
+    (no verdict; least squares won over a least-squares-like given solution; or L1 won
+    over a given solution that is no least squares: that robust fit stands).
+    ``held_out_change`` is the held-out sum of weighted squared
     residuals of the alternative minus least squares, over least squares' in-sample sum
     (negative: the alternative predicts the held-out edges better), over the
     ``folds_run`` folds that ran and scaled to all of them; NaN (0 folds run) where there
@@ -179,7 +181,8 @@ def choose_by_cross_validation(
     (:data:`LEAST_SQUARES_TOLERANCE`) it stands, or the alternative's fit replaces it where
     that predicts the held-out edges better; where ``rot`` is a robust fit, it stands, or
     the least-squares optimum replaces it where least squares predicts them better, or
-    Huber's fit where Huber does (:data:`LEAST_SQUARES_TOLERANCE`). Where
+    Huber's fit where the alternative is Huber and it predicts them better
+    (:data:`LEAST_SQUARES_TOLERANCE`). Where
     leaving out a fold would split the graph (beyond nodes left without an edge, which keep
     their rotation in the fold's fits), the ``tree`` edges (a spanning tree) stay in every
     fold's fit and the alternative is Huber's estimator, else L1. No verdict (``rot``
