@@ -220,7 +220,7 @@ def choose_by_cross_validation(
     if change >= 0.0:  # least squares: its optimum in a robust fit's place, else rot
         return EstimatorVerdict(ls if robust else rot, LEAST_SQUARES, change, run,
                                 tree_kept, replaced=robust, robust_given=robust)
-    if robust and alternative == L1:  # a robust fit of a view graph already: it stands
+    if robust and alternative == L1:  # the folds keep no tree: a robust fit stands
         return EstimatorVerdict(rot, alternative, change, run, tree_kept,
                                 replaced=False, robust_given=True)
     return EstimatorVerdict(alternative_fit(alternative, ls, i, j, R, w, median),
