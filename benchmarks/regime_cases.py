@@ -514,6 +514,25 @@ def near_false_case(name: str, base: RegimeCase, *, low_deg: float = 5.0,
     return replace(base, name=name, R=R, description=desc)
 
 
+def broken_odometry_case(name: str, base: RegimeCase, *, steps: int,
+                         seed: int = 0) -> RegimeCase:
+    """``base`` with ``steps`` of its odometry edges (consecutive ids), drawn at random,
+    replaced by false rotations (at least :data:`MIN_FALSE_DEG` off the truth) and marked
+    false. What this tests: a front end that lost its track and reported a wrong step,
+    where the solver trusts the odometry (``odometry`` option, default ``auto``)."""
+    rng = rng_for(name, seed)
+    odometry = np.flatnonzero(base.odometry)
+    if steps > odometry.size:
+        raise ValueError(f"{steps} broken steps asked of {odometry.size} odometry edges")
+    bad = np.sort(rng.choice(odometry, steps, replace=False))
+    R = base.R.copy()
+    R[bad] = false_rotations(relative(base.gt, base.i[bad], base.j[bad]), rng)
+    inlier = np.ones(base.num_edges, bool) if base.inlier is None else base.inlier.copy()
+    inlier[bad] = False
+    desc = f"{base.description or base.name}, {steps} odometry steps false"
+    return replace(base, name=name, R=R, inlier=inlier, description=desc)
+
+
 # ------------------------------------------------------- chains in pieces, revisited routes
 
 

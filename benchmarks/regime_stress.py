@@ -1,6 +1,6 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Forty-seven cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+Fifty-four cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
 with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
@@ -17,8 +17,11 @@ on suite topologies with false closures; and four of those measurements sent wit
 weights (every weight 1, as a front end that reports no covariances sends them;
 :func:`~benchmarks.regime_cases.unweighted_case`); four with noise whose level differs
 from edge to edge and is not reported (lognormal about 2-5 deg;
-:func:`~benchmarks.regime_cases.heteroscedastic_case`); and two whose false edges are only
-5-30 deg off the truth (:func:`~benchmarks.regime_cases.near_false_case`). They look
+:func:`~benchmarks.regime_cases.heteroscedastic_case`); two whose false edges are only
+5-30 deg off the truth (:func:`~benchmarks.regime_cases.near_false_case`); and seven with
+one to five odometry steps false, as a front end that lost its track reports them, on
+chains, a revisited route and three SLAM graphs
+(:func:`~benchmarks.regime_cases.broken_odometry_case`). They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
 ``paper`` profile (ours, the oracle, every installed peer) as the suite does
@@ -47,6 +50,7 @@ from benchmarks.datasets import shared_dir_or_say
 from benchmarks.regime_cases import (
     NOISE_MODELS,
     RegimeCase,
+    broken_odometry_case,
     chain_case,
     dense_case,
     heteroscedastic_case,
@@ -105,6 +109,10 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
 
     def near(name: str, base: Callable[[], RegimeCase]) -> Callable[[], RegimeCase]:
         return lambda: near_false_case(name, base(), seed=seed)
+
+    def broken(name: str, base: Callable[[], RegimeCase], steps: int
+               ) -> Callable[[], RegimeCase]:
+        return lambda: broken_odometry_case(name, base(), steps=steps, seed=seed)
 
     return [
         slam("stress/torus3D/noise5", "torus3D", noise_deg=5.0),
@@ -189,6 +197,20 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
              slam("slam/sphere2500/rand10", "sphere2500", random_false=0.10)),
         near("stress/near/chain/1000/rand30",
              chain("chain/1000/rand30", 1000, closures=60, false_random=0.30)),
+        broken("stress/odometry-breaks/chain/1000/clean",
+               chain("chain/1000/clean", 1000, closures=36), 2),
+        broken("stress/odometry-breaks/chain/1000/rand30",
+               chain("chain/1000/rand30", 1000, closures=36, false_random=0.30), 2),
+        broken("stress/odometry-breaks/chain/300/rand20",
+               chain("chain/300/rand20", 300, closures=12, false_random=0.20), 1),
+        broken("stress/odometry-breaks/revisit/3x400-rand20",
+               revisit("revisit/3x400-rand20", 400, 3, runs=12, false_random=0.20), 3),
+        broken("stress/odometry-breaks/parking-garage/rand5",
+               slam("slam/parking-garage/rand5", "parking-garage", random_false=0.05), 3),
+        broken("stress/odometry-breaks/sphere2500/rand10",
+               slam("slam/sphere2500/rand10", "sphere2500", random_false=0.10), 5),
+        broken("stress/odometry-breaks/torus3D/clean",
+               slam("slam/torus3D/noise1", "torus3D"), 5),
     ]
 
 

@@ -68,6 +68,7 @@ def diagnostic_values(
             "relocalized_by_verification": result.num_relocalized,
             "closure_runs_left_out": result.num_runs_left_out,
             "trusted_odometry_edges": result.num_trusted_odometry,
+            "distrusted_odometry_edges": result.num_distrusted_odometry,
             "verification": result.verification or "off",
             "noise_sigma_deg": result.noise_sigma_deg,
             "odometry_weight": result.odometry_weight,
@@ -80,6 +81,10 @@ def diagnostic_values(
         if num_components > 1:
             level = Level.WARN
             problems.append(f"{num_components - 1} component(s) not connected to the anchor")
+        if result.num_distrusted_odometry:
+            level = Level.WARN
+            problems.append(f"{result.num_distrusted_odometry} odometry edge(s) disagreed "
+                            "with the loop closures across them and were left out")
         if result.num_untested:
             level = Level.WARN
             problems.append(f"{result.num_untested} loop closure(s) could not be tested")

@@ -64,6 +64,9 @@ class SolveResult:
     trajectory) that the verification left out as wholes: perceptual aliasing."""
     num_trusted_odometry: int = 0
     """Odometry edges the verification trusted as inliers (option ``odometry``)."""
+    num_distrusted_odometry: int = 0
+    """Odometry edges the verification stopped trusting and left out: the loop closures
+    across them disagreed with them (a front end's wrong step, e.g. a track lost)."""
     verification: str = ""
     """Which solution the verification kept (largest component): ``dmf`` (the filtered
     DMF), ``robust`` (its least-squares re-solve on every edge), ``dmf_refit`` (the re-solve

@@ -81,6 +81,9 @@ class ComponentSolution:
     """Depth candidates the candidate race stopped early (never chosen)."""
     runs_left_out: int = 0
     """Runs of loop closures the verification's re-solve left out as wholes."""
+    distrusted: int = 0
+    """Odometry edges the verification stopped trusting and left out: the loop closures
+    across them disagreed (:mod:`.robust.odometry_breaks`)."""
     odometry_weight: float = 1.0
     """Weight of the odometry edges relative to the loop closures that the solution was
     fitted with, estimated from the data (option ``class_noise``); 1 where not used."""
@@ -211,6 +214,7 @@ class RotationAverager:
             num_relocalized=out.relocalized,
             num_runs_left_out=out.runs_left_out,
             num_trusted_odometry=out.trusted,
+            num_distrusted_odometry=out.distrusted,
             cost_by_depth=out.cost_by_depth,
             duration_s=out.duration_s,
             iterations_by_depth=out.iterations_by_depth,
@@ -449,7 +453,8 @@ class RotationAverager:
                   ", noise "
                   f"{out.noise.sigma_deg:.2f} deg per axis, {int((~inlier).sum())} "
                   f"edges outside, {trusted} odometry edges trusted, {out.relocalized} nodes "
-                  f"relocalized, {out.runs_left_out} runs of loop closures left out")
+                  f"relocalized, {out.runs_left_out} runs of loop closures left out"
+                  f"{f', {out.distrusted} odometry edges left out' if out.distrusted else ''}")
         kept_solution = "dmf_refit" if out.chosen == "robust" and refitted else out.chosen
         if estimator:
             kept_solution += f"+{estimator}"
@@ -457,6 +462,7 @@ class RotationAverager:
                                  out.noise.sigma_deg, kept_solution, out.untested,
                                  out.relocalized, trusted, pruned,
                                  runs_left_out=out.runs_left_out,
+                                 distrusted=out.distrusted,
                                  inlier_threshold=out.noise.threshold)
 
     def _fit_dmf(
@@ -819,6 +825,8 @@ class ArraySolution:
     """Depth candidates the candidate race stopped early (largest component)."""
     runs_left_out: int = 0
     """Runs of loop closures the verification left out as wholes, over all components."""
+    distrusted: int = 0
+    """Odometry edges the verification stopped trusting and left out, over all components."""
     odometry_weight: float = 1.0
     """Weight of the odometry relative to the loop closures estimated from the data (largest
     component; option ``class_noise``); 1 where not used."""
@@ -851,7 +859,7 @@ def average_rotations(
     depth, costs, iterations, best_size = 0, {}, {}, 0
     pruned: tuple[int, ...] = ()
     noise, verification, untested, relocalized, trusted = math.nan, "", 0, 0, 0
-    runs_left_out, odometry_weight = 0, 1.0
+    runs_left_out, distrusted, odometry_weight = 0, 0, 1.0
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
         if label == 0 and anchor in nodes:
@@ -875,6 +883,7 @@ def average_rotations(
         untested += sol.untested
         relocalized += sol.relocalized
         runs_left_out += sol.runs_left_out
+        distrusted += sol.distrusted
         trusted += sol.trusted
         if nodes.size > best_size:
             depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
@@ -884,7 +893,7 @@ def average_rotations(
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
                          time.perf_counter() - t0, iterations, filter_kept, noise,
                          verification, untested, relocalized, trusted, pruned, runs_left_out,
-                         odometry_weight)
+                         distrusted, odometry_weight)
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:

@@ -34,7 +34,12 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    and inflated its scale), the pass runs again at that scale, every candidate costed
    there. Then runs of loop closures that pull
    the fit all one way (:mod:`.closure_runs`) are left out where that lowers the choice
-   cost (:func:`_leave_runs_out`).
+   cost (:func:`_leave_runs_out`). Where odometry steps are suspect of a break (the
+   closures across them rejected and the step a jump, or a fit leaves the step far off:
+   :mod:`.odometry_breaks`), the pass runs again with the suspects as ordinary edges,
+   from the odometry's pieces joined where the most closures agree, and that fit stands
+   where its truncated squares, with ``BREAK_PENALTY`` caps for each suspect it leaves out
+   that is no jump, are the lower (:func:`_breaks_explain_more`).
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
    (:mod:`.relocalize`); if that lowers the choice cost, step 3 runs again from there. The
    DMF solution's far-off nodes move the same way. Last, on a sparse graph, least squares
@@ -92,6 +97,7 @@ from rotavg_ros.core.robust.noise import (
     looks_gaussian,
     redundancy,
 )
+from rotavg_ros.core.robust.odometry_breaks import OdometrySuspects, suspect_odometry
 from rotavg_ros.core.robust.odometry_start import odometry_start
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.threads import map_in_threads
@@ -114,6 +120,13 @@ or so stages only walked the solution through near-L1 fits back to where it bega
 regime benchmark's 30 sparse cases with false edges of seeds 0 and 3: the same errors to
 the third decimal, 7-31% fewer Gauss-Newton steps in the re-solve. The pass from the
 odometry chain keeps the flat start: the chain's drift is what it must escape."""
+
+BREAK_PENALTY = 3.0
+"""Odometry suspects of a break (:mod:`.odometry_breaks`) become ordinary edges only where
+the fit without trusting them has truncated squares lower, by this many caps for each
+suspect it leaves out that is no jump (besides that edge's own cap), than the fit that
+trusted them: cutting such a step must free several closures (see
+:func:`_breaks_explain_more`)."""
 
 PAIRWISE_ALWAYS_UP_TO = 200
 """The tight pass runs its pairwise closure test whatever its starts say on a graph with at
@@ -188,6 +201,9 @@ class VerifyOutcome:
     solution is kept."""
     resolve_gaussian: bool = False
     """The re-solve's residuals look Gaussian (:attr:`RobustSolve.gaussian`)."""
+    distrusted: int = 0
+    """Odometry edges the re-solve stopped trusting and left out (:attr:`RobustSolve.
+    distrusted`), whichever solution is kept."""
 
 
 def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> BoolArray:
@@ -444,6 +460,9 @@ class RobustSolve:
     """The final fit's standardized inlier residuals look Gaussian on the axes they span
     (:func:`~.noise.looks_gaussian` with their rotation vectors): least squares is then the
     better estimator."""
+    distrusted: int = 0
+    """Odometry edges no longer trusted and left out: the loop closures across them
+    disagreed with them (:mod:`.odometry_breaks`)."""
 
 
 def verify(
@@ -490,7 +509,7 @@ def robust_resolve(
     with sparse loop closures) always gets step 4 with the pairwise closure test."""
     odometry = np.zeros(i.size, bool) if known_inlier is None else known_inlier
     known = np.zeros(i.size, bool)  # trusted edges: none until the noise scale is known
-    runs_left_out = 0
+    runs_left_out = distrusted = 0
 
     def cost(rotations: FloatArray) -> float:
         return truncated_l1(rotations, i, j, R, w, cap, known)
@@ -532,71 +551,33 @@ def robust_resolve(
     # fit, and a few false ones can bend it until every residual is inside (a 100-keyframe
     # chain with 8 true and 2 false closures: no outlier, 7.1 deg per axis against the
     # odometry's 1.4). Without odometry there is nothing to judge the closures by.
-    adaptive = GNC_SIGMAS * noise.sigma / np.sqrt(w)
+    step3_residuals = residual_angles(rot, i, j, R) * np.sqrt(w)
     chain_like = has_odometry and redundancy(num_nodes, inlier) < chain_below
     if math.isfinite(noise.sigma) and has_odometry and (chain_like or not inlier.all()):
-        threshold = np.minimum(adaptive, initial_threshold)
+        tight = functools.partial(_tight_pass, num_nodes, i, j, R, w, step3=(
+            rot, inlier, noise, t), tree=tree, rounds=rounds, max_threshold=max_threshold,
+            initial_threshold=initial_threshold, workers=workers, chain_like=chain_like)
+        tight_fit = tight(odometry, chain)
         known = odometry
-        inlier |= known
-        # GNC at a tight threshold depends on its start: from step 3's solution and from
-        # the odometry chain (which no false closure bends), the lower cost wins; its
-        # inliers then settle. Where those disagree, the result depends on the start, and
-        # the best start from pairwise-consistent closure sets joins them (on a chain, and
-        # where the closures are few enough for the test to be cheap, also where they
-        # agree: both can end in the same bent fit). The fits compare by the
-        # GNC's own objective, their truncated squares (:func:`truncated_squares`), not by
-        # the choice's L1 cost.
-        tls = functools.partial(truncated_squares, i=i, j=j, R=R, w=w,
-                                c=GNC_SIGMAS * noise.sigma, trusted=known)
-        candidates: list[tuple[float, FloatArray, BoolArray]] = []
-
-        def tight_from(*begins: tuple[FloatArray, float]) -> None:
-            """GNC at ``threshold`` from each ``(start, mu_min)``, on up to ``workers``
-            threads; each new inlier set, in the starts' order, is a candidate."""
-            fits = map_in_threads(
-                lambda begin: robust_from(begin[0], i, j, R, w, threshold, known, begin[1]),
-                begins, workers)
-            for tight_rot, tight_inlier in fits:
-                if not any(np.array_equal(tight_inlier, c[2]) for c in candidates):
-                    candidates.append((tls(tight_rot), tight_rot, tight_inlier))
-
-        def from_every_start(consistent: list[FloatArray]) -> None:
-            begins = [(rot, TIGHT_START_MU)] + [(start, 0.0) for start in chain.values()]
-            if consistent:  # (the GNC keeps the order of the starts' costs: from the best)
-                begins.append((min(consistent, key=tls), TIGHT_START_MU))
-            tight_from(*begins)
-
-        from_every_start([])
-        few = int(np.count_nonzero(~odometry)) <= PAIRWISE_ALWAYS_UP_TO
-        consistent = consistent_starts(num_nodes, i, j, R, w, odometry, noise.sigma) if (
-            len(candidates) > 1 or chain_like or few) else []
-        if consistent:
-            fits = [start for start, _ in consistent]
-            tight_from((min(fits, key=tls), TIGHT_START_MU))
-            # The noise scale came from step 3's fit, which false closures the odometry's
-            # drift can explain may have bent: then a consistent start fits its own
-            # edges at a clearly lower scale, and at step 3's the bent fit costs least.
-            # The pass runs again at the lower scale, every candidate costed there.
-            rescaled = min(_noise_of(start, i, j, R, w, kept, max_threshold, tree)
-                           for start, kept in consistent)
-            if rescaled < RESCALE_BELOW * noise.sigma:
-                threshold = np.minimum(GNC_SIGMAS * rescaled / np.sqrt(w),
-                                       initial_threshold)
-                tls = functools.partial(truncated_squares, i=i, j=j, R=R, w=w,
-                                        c=GNC_SIGMAS * rescaled, trusted=known)
-                candidates = [(tls(c[1]), c[1], c[2]) for c in candidates]
-                from_every_start(fits)
-        best = min(candidates, key=lambda c: c[0])
-        if not np.array_equal(best[2], inlier):  # else: the same fit as step 3's
-            tight = _settle(best[1], i, j, R, w, best[2], known, tree, rounds,
-                            max_threshold, initial_threshold)
-            if tls(tight[0]) < tls(rot):
-                rot, inlier, noise, t = tight
-        # Runs of consistent false closures the pairwise test could not reach (the odometry
-        # between them and the true closures is long) pull the fit all one way.
-        rot, inlier, noise, t, runs_left_out = _leave_runs_out(
-            rot, i, j, R, w, inlier, noise, t, known, tree, rounds, max_threshold,
-            initial_threshold)
+        # Odometry that the loop closures across it disagree with (a front end that lost
+        # its track and reported a wrong step): trusted, it turns everything after it, and
+        # the pass rejects the true closures across it instead. The pass runs again with
+        # the suspects as ordinary edges, from the odometry's pieces joined where the most
+        # closures agree, and stands where it explains the data clearly better.
+        misfit = ((step3_residuals > initial_threshold)
+                  | (residual_angles(tight_fit.rotations, i, j, R) * np.sqrt(w)
+                     > GNC_SIGMAS * tight_fit.noise.sigma))
+        suspects = suspect_odometry(num_nodes, i, j, R, odometry, tight_fit.inlier, misfit)
+        if suspects.edges.any():
+            trusted = odometry & ~suspects.edges
+            joined = odometry_start(num_nodes, i, j, R, w, trusted, initial_threshold)
+            untrusting = tight(trusted, {"odometry": joined})
+            if _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, suspects):
+                tight_fit, known = untrusting, trusted
+                distrusted = int(np.count_nonzero(suspects.edges & ~untrusting.inlier))
+        rot, inlier, noise, t = (tight_fit.rotations, tight_fit.inlier, tight_fit.noise,
+                                 tight_fit.t)
+        runs_left_out = tight_fit.runs_left_out
         cap = _cap(noise, initial_threshold)
     relocalized = 0
     # Nodes the re-solve left far off (all their true edges dropped) move to where their
@@ -621,7 +602,112 @@ def robust_resolve(
         cap = _cap(noise, initial_threshold)
     gaussian = looks_gaussian(t, inlier, edge_residuals(rot, i, j, R))
     return RobustSolve(rot, inlier, noise, t, cap, known, tree, start, relocalized,
-                       restarted is not None, runs_left_out, gaussian)
+                       restarted is not None, runs_left_out, gaussian, distrusted)
+
+
+@dataclass(frozen=True)
+class TightFit:
+    """Step 4's result: a least-squares fit and the edges it rests on, as step 3 gives it."""
+
+    rotations: FloatArray
+    inlier: BoolArray
+    noise: NoiseModel
+    t: FloatArray
+    runs_left_out: int
+
+
+def _tight_pass(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    known: BoolArray, chain_starts: dict[str, FloatArray], *,
+    step3: tuple[FloatArray, BoolArray, NoiseModel, FloatArray], tree: BoolArray,
+    rounds: int, max_threshold: float, initial_threshold: float, workers: int,
+    chain_like: bool,
+) -> TightFit:
+    """Step 4 of the module docstring from step 3's fit ``step3`` (rotations, inliers,
+    noise, standardized residuals): GNC at ``GNC_SIGMAS`` noise scales with the ``known``
+    edges trusted, from step 3's solution, each of ``chain_starts`` and, where called for,
+    pairwise-consistent closure sets; then runs of closures left out."""
+    rot, inlier, noise, t = step3
+    inlier = inlier | known
+    threshold = np.minimum(GNC_SIGMAS * noise.sigma / np.sqrt(w), initial_threshold)
+    # GNC at a tight threshold depends on its start: from step 3's solution and from
+    # the odometry chain (which no false closure bends), the lower cost wins; its
+    # inliers then settle. Where those disagree, the result depends on the start, and
+    # the best start from pairwise-consistent closure sets joins them (on a chain, and
+    # where the closures are few enough for the test to be cheap, also where they
+    # agree: both can end in the same bent fit). The fits compare by the
+    # GNC's own objective, their truncated squares (:func:`truncated_squares`), not by
+    # the choice's L1 cost.
+    tls = functools.partial(truncated_squares, i=i, j=j, R=R, w=w,
+                            c=GNC_SIGMAS * noise.sigma, trusted=known)
+    candidates: list[tuple[float, FloatArray, BoolArray]] = []
+
+    def tight_from(*begins: tuple[FloatArray, float]) -> None:
+        """GNC at ``threshold`` from each ``(start, mu_min)``, on up to ``workers``
+        threads; each new inlier set, in the starts' order, is a candidate."""
+        fits = map_in_threads(
+            lambda begin: robust_from(begin[0], i, j, R, w, threshold, known, begin[1]),
+            begins, workers)
+        for tight_rot, tight_inlier in fits:
+            if not any(np.array_equal(tight_inlier, c[2]) for c in candidates):
+                candidates.append((tls(tight_rot), tight_rot, tight_inlier))
+
+    def from_every_start(consistent: list[FloatArray]) -> None:
+        begins = [(rot, TIGHT_START_MU)] + [(start, 0.0) for start in chain_starts.values()]
+        if consistent:  # (the GNC keeps the order of the starts' costs: from the best)
+            begins.append((min(consistent, key=tls), TIGHT_START_MU))
+        tight_from(*begins)
+
+    from_every_start([])
+    few = int(np.count_nonzero(~known)) <= PAIRWISE_ALWAYS_UP_TO
+    consistent = consistent_starts(num_nodes, i, j, R, w, known, noise.sigma) if (
+        len(candidates) > 1 or chain_like or few) else []
+    if consistent:
+        fits = [start for start, _ in consistent]
+        tight_from((min(fits, key=tls), TIGHT_START_MU))
+        # The noise scale came from step 3's fit, which false closures the odometry's
+        # drift can explain may have bent: then a consistent start fits its own
+        # edges at a clearly lower scale, and at step 3's the bent fit costs least.
+        # The pass runs again at the lower scale, every candidate costed there.
+        rescaled = min(_noise_of(start, i, j, R, w, kept, max_threshold, tree)
+                       for start, kept in consistent)
+        if rescaled < RESCALE_BELOW * noise.sigma:
+            threshold = np.minimum(GNC_SIGMAS * rescaled / np.sqrt(w),
+                                   initial_threshold)
+            tls = functools.partial(truncated_squares, i=i, j=j, R=R, w=w,
+                                    c=GNC_SIGMAS * rescaled, trusted=known)
+            candidates = [(tls(c[1]), c[1], c[2]) for c in candidates]
+            from_every_start(fits)
+    best = min(candidates, key=lambda c: c[0])
+    if not np.array_equal(best[2], inlier):  # else: the same fit as step 3's
+        tight = _settle(best[1], i, j, R, w, best[2], known, tree, rounds,
+                        max_threshold, initial_threshold)
+        if tls(tight[0]) < tls(rot):
+            rot, inlier, noise, t = tight
+    # Runs of consistent false closures the pairwise test could not reach (the odometry
+    # between them and the true closures is long) pull the fit all one way.
+    rot, inlier, noise, t, runs_left_out = _leave_runs_out(
+        rot, i, j, R, w, inlier, noise, t, known, tree, rounds, max_threshold,
+        initial_threshold)
+    return TightFit(rot, inlier, noise, t, runs_left_out)
+
+
+def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
+                         j: IntArray, R: FloatArray, w: FloatArray, trusted: BoolArray,
+                         suspects: OdometrySuspects) -> bool:
+    """Whether the tight pass with the ``suspects`` (odometry) as ordinary edges explains
+    the data better than the pass that trusted them: its truncated squares
+    (:func:`truncated_squares`, at ``GNC_SIGMAS`` times the lower of the two fits' noise
+    scales, the suspects capped in both) plus ``BREAK_PENALTY`` caps for each suspect it
+    leaves out that is no jump (``jumps``) are below the trusting pass's. Odometry is
+    rarely wrong, and a group of consistent false closures can claim that a true step is:
+    cutting a step that is no jump must free several closures. A jump, a measured step
+    far above the usual, is suspect by itself."""
+    c = GNC_SIGMAS * min(trusting.noise.sigma, untrusting.noise.sigma)
+    cut = int(np.count_nonzero(suspects.edges & ~untrusting.inlier & ~suspects.pointed_jumps))
+    return bool(truncated_squares(untrusting.rotations, i, j, R, w, c, trusted)
+                + BREAK_PENALTY * cut * c * c
+                < truncated_squares(trusting.rotations, i, j, R, w, c, trusted))
 
 
 def _leave_runs_out(
@@ -785,7 +871,7 @@ def choose(
     return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, robust.start,
                          int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known,
                          classified | known, runs_left_out=robust.runs_left_out,
-                         resolve_gaussian=robust.gaussian)
+                         resolve_gaussian=robust.gaussian, distrusted=robust.distrusted)
 
 
 def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutcome:
@@ -793,5 +879,6 @@ def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutco
     return VerifyOutcome(robust.rotations, robust.inlier, robust.noise, "robust", costs,
                          robust.start, int(np.sum(np.isnan(robust.t) & ~robust.tree)),
                          robust.cap, robust.relocalized, robust.known, robust.inlier,
-                         robust.restarted, robust.runs_left_out, robust.gaussian)
+                         robust.restarted, robust.runs_left_out, robust.gaussian,
+                         robust.distrusted)
 

@@ -1,0 +1,111 @@
+"""Odometry steps that the loop closures across them disagree with: suspects of a break.
+
+A front end that loses its track can report one wrong odometry step. Trusted, that step
+turns every node after it, and the re-solve rejects the true loop closures across it
+instead: on a 1,000-keyframe chain with 36 true closures and two wrong steps, 20 closures
+rejected and a 105 deg median error. The suspects:
+
+- **Jumps the closures point at.** A closure ``(a, b)``, ``a < b``, spans the odometry
+  step ``(m, m + 1)`` when ``a <= m < b``: the loop it closes over the odometry runs
+  through that step. The closures point at a step where the fit that trusts the odometry
+  rejects at least ``MIN_REJECTED_ACROSS`` of those spanning it and keeps fewer than one in
+  ``REJECTED_PER_KEPT`` of them. Random false closures are rejected wherever they lie, a
+  minority among the closures across any step; a wrong step has the closures across it
+  all rejected. But the closures cannot tell which step between their ends broke (cutting
+  any of them fits them alike), and a group of consistent false closures points the same
+  way at true steps. So only the steps among those that are jumps are suspects: a
+  measured rotation far above the odometry's usual step (``JUMP_MADS`` robust spreads
+  above the median angle), a track lost and found again, not a keyframe's usual motion.
+  On a chain this is the only sign.
+- **Steps a fit leaves far off.** Step 3 of the verification judges the odometry as any
+  other edge; a step it leaves outside by more than the initial threshold is suspect
+  (a graph whose steps are no smaller than its jumps, smallGrid3D, has no jump to point
+  at). So is a step that the fit trusting the odometry leaves beyond its own threshold:
+  trusted edges are never rejected, and where many closures cross a wrong step least
+  squares bends the step itself.
+
+A suspect is only that: the verification re-solves with the suspects as ordinary edges and
+keeps that fit only where it explains the data clearly better
+(:func:`~.verify.robust_resolve`).
+
+Conventions: odometry edges join consecutive node indices; ``R_ij ~= R_i R_j^T``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rotavg_ros.core.so3 import rotation_angle
+from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
+
+MIN_REJECTED_ACROSS = 3
+"""A step is suspect by its closures when at least this many closures across it are
+rejected (fewer: one or two false closures, which no step explains)."""
+
+REJECTED_PER_KEPT = 3.0
+"""... and the rejected ones are at least this many times the kept ones plus one."""
+
+RARE_JUMPS = 0.01
+"""Where at most this share of the odometry steps are jumps, every jump is suspect: the
+closures across a wrong step need not all be rejected (several wrong steps on a route
+driven three times: a fit keeps the closures that their combined turns happen to fit)."""
+
+JUMP_MADS = 5.0
+"""A step is a jump when its measured rotation angle exceeds the odometry's median step
+angle by this many robust spreads (1.4826 median absolute deviations)."""
+
+
+@dataclass(frozen=True)
+class OdometrySuspects:
+    """The odometry edges suspect of a break (module docstring)."""
+
+    edges: BoolArray
+    """Every suspect."""
+    pointed_jumps: BoolArray
+    """The suspects that are jumps the closures point at: evident enough that cutting one
+    needs no more than its own cap (:func:`~.verify.robust_resolve`)."""
+
+
+def suspect_odometry(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
+                     odometry: BoolArray, inlier: BoolArray, misfit: BoolArray,
+                     ) -> OdometrySuspects:
+    """The odometry edges suspect of a break (module docstring): those ``misfit`` (the
+    caller's residual tests), the jumps (:func:`odometry_jumps`) among the steps the
+    closures across them point at (rejected, ``~inlier``, by a fit that trusted the
+    odometry), and every jump where jumps are rare (at most ``RARE_JUMPS`` of the steps)."""
+    jump = odometry_jumps(R, odometry)
+    closure = ~odometry
+    a = np.minimum(i, j)[closure]
+    b = np.maximum(i, j)[closure]
+    kept = inlier[closure]
+    # Closures across step m (a <= m < b), rejected and kept: difference arrays over m.
+    rejected_across = _count_across(a[~kept], b[~kept], num_nodes)
+    kept_across = _count_across(a[kept], b[kept], num_nodes)
+    broken = ((rejected_across >= MIN_REJECTED_ACROSS)
+              & (rejected_across >= REJECTED_PER_KEPT * (kept_across + 1)))
+    pointed_jumps = odometry & broken[np.minimum(i, j)] & jump
+    rare = np.count_nonzero(jump) <= RARE_JUMPS * np.count_nonzero(odometry)
+    return OdometrySuspects((odometry & misfit) | pointed_jumps | (jump & rare),
+                            pointed_jumps)
+
+
+def odometry_jumps(R: FloatArray, odometry: BoolArray) -> BoolArray:
+    """The odometry steps whose measured rotation angle exceeds the odometry's median step
+    angle by ``JUMP_MADS`` robust spreads (1.4826 median absolute deviations)."""
+    angle = rotation_angle(R)
+    if not odometry.any():
+        return np.zeros(R.shape[0], bool)
+    steps = angle[odometry]
+    median = float(np.median(steps))
+    spread = 1.4826 * float(np.median(np.abs(steps - median)))
+    return odometry & (angle > median + JUMP_MADS * spread)
+
+
+def _count_across(a: IntArray, b: IntArray, num_nodes: int) -> FloatArray:
+    """Per node ``m``, how many of the spans ``[a, b)`` hold it."""
+    delta = np.zeros(num_nodes + 1)
+    np.add.at(delta, a, 1.0)
+    np.add.at(delta, b, -1.0)
+    return np.cumsum(delta)[:num_nodes]
