@@ -48,7 +48,7 @@ def test_the_closures_across_a_rejected_jump_point_at_it() -> None:
     none = np.zeros(i.size, bool)
     found = suspect_odometry(100, i, j, R, odometry, inlier, none)
     assert np.flatnonzero(found.edges).tolist() == [30]
-    assert np.flatnonzero(found.pointed_jumps).tolist() == [30]
+    assert np.flatnonzero(found.jumps).tolist() == [30]
     # Two rejected closures across it are not enough; nor three against a kept one.
     two = inlier.copy()
     two[101] = True
@@ -61,13 +61,13 @@ def test_the_closures_across_a_rejected_jump_point_at_it() -> None:
                                 np.zeros(i2.size, bool)).edges.any()
     # A step the closures point at that is no jump is no suspect (a group of consistent
     # false closures points the same way at true steps); a misfit step always is, and is
-    # no pointed jump.
+    # no jump.
     i3, j3, R3, odo3 = _chain_with_closures(100, closures, broken=97)
     misfit = np.zeros(i3.size, bool)
     misfit[12] = True
     found = suspect_odometry(100, i3, j3, R3, odo3, inlier, misfit)
     assert np.flatnonzero(found.edges).tolist() == [12]
-    assert not found.pointed_jumps.any()
+    assert not found.jumps.any()
 
 
 def test_where_jumps_are_rare_every_jump_is_suspect() -> None:
@@ -76,7 +76,7 @@ def test_where_jumps_are_rare_every_jump_is_suspect() -> None:
     found = suspect_odometry(300, i, j, R, odometry, np.ones(i.size, bool),
                              np.zeros(i.size, bool))
     assert np.flatnonzero(found.edges).tolist() == [120]
-    assert not found.pointed_jumps.any()
+    assert np.flatnonzero(found.jumps).tolist() == [120]
 
 
 def _solve(case: rc.RegimeCase) -> tuple[float, int]:

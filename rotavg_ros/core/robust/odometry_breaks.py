@@ -63,8 +63,8 @@ class OdometrySuspects:
 
     edges: BoolArray
     """Every suspect."""
-    pointed_jumps: BoolArray
-    """The suspects that are jumps the closures point at: evident enough that cutting one
+    jumps: BoolArray
+    """The suspects that are jumps (:func:`odometry_jumps`): evident enough that cutting one
     needs no more than its own cap (:func:`~.verify.robust_resolve`)."""
 
 
@@ -87,8 +87,8 @@ def suspect_odometry(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
               & (rejected_across >= REJECTED_PER_KEPT * (kept_across + 1)))
     pointed_jumps = odometry & broken[np.minimum(i, j)] & jump
     rare = np.count_nonzero(jump) <= RARE_JUMPS * np.count_nonzero(odometry)
-    return OdometrySuspects((odometry & misfit) | pointed_jumps | (jump & rare),
-                            pointed_jumps)
+    jumps = pointed_jumps | (jump & rare)
+    return OdometrySuspects((odometry & misfit) | jumps, jumps)
 
 
 def odometry_jumps(R: FloatArray, odometry: BoolArray) -> BoolArray:

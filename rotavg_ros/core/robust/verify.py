@@ -704,7 +704,7 @@ def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
     cutting a step that is no jump must free several closures. A jump, a measured step
     far above the usual, is suspect by itself."""
     c = GNC_SIGMAS * min(trusting.noise.sigma, untrusting.noise.sigma)
-    cut = int(np.count_nonzero(suspects.edges & ~untrusting.inlier & ~suspects.pointed_jumps))
+    cut = int(np.count_nonzero(suspects.edges & ~untrusting.inlier & ~suspects.jumps))
     return bool(truncated_squares(untrusting.rotations, i, j, R, w, c, trusted)
                 + BREAK_PENALTY * cut * c * c
                 < truncated_squares(trusting.rotations, i, j, R, w, c, trusted))
