@@ -97,7 +97,20 @@ def test_default_profile_leaves_out_wrong_odometry_steps_on_a_chain() -> None:
     # judged (ef99777), every step trusted: 10.73 deg median against the oracle's 3.46.
     base = rc.chain_case("test/chain/1000/rand30", 1000, closures=36, false_random=0.30)
     case = rc.broken_odometry_case("test/odometry-breaks", base, steps=2)
-    median, distrusted = _solve(case)
+    res, median = _result(case)
+    distrusted = res.num_distrusted_odometry
+    # Exactly the wrong steps are out of the solution, every other step in (the result's
+    # edges are the graph's, sorted by pair).
+    edges = case.view_graph().edge_arrays()
+    assert case.inlier is not None
+    false = ~case.inlier
+    wrong = {(int(a), int(b)) for a, b in zip(case.i[false], case.j[false], strict=True)}
+    steps = np.abs(edges.i - edges.j) == 1
+    is_wrong = np.array([(int(a), int(b)) in wrong for a, b in zip(edges.i, edges.j,
+                                                                   strict=True)])
+    inlier = np.asarray(res.edge_inlier)
+    assert np.count_nonzero(steps & is_wrong) == 2
+    assert not inlier[steps & is_wrong].any() and inlier[steps & ~is_wrong].all()
     g = case.view_graph(case.inlier)
     oracle = RotationAverager(SolverOptions()).solve(g)
     est = {k: oracle.rotations[g.index_of(k)] for k in range(case.num_nodes)}
@@ -110,7 +123,8 @@ def test_default_profile_trusts_every_step_of_a_chain_without_wrong_ones() -> No
     for seed in (0, 1):
         case = rc.chain_case("chain/1000/grouped30", 1000, closures=36, false_grouped=0.30,
                              seed=seed)
-        assert _solve(case)[1] == 0
+        res, _ = _result(case)
+        assert res.num_distrusted_odometry == 0 and res.num_trusted_odometry == 999
 
 
 def test_diagnostics_warn_of_odometry_left_out() -> None:

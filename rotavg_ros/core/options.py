@@ -324,7 +324,12 @@ class VerifyOptions:
     consecutive keyframes), ``none``, or ``auto`` (consecutive, when they chain at least 90%
     of the nodes of a graph sparse enough for sparse mode; else none). A SLAM front end's
     odometry is rarely wrong, and a group of consistent false closures can outvote the few
-    edges that cross a weakly connected part of the graph, unless those edges are trusted."""
+    edges that cross a weakly connected part of the graph, unless those edges are trusted.
+    Rarely is not never: a step that is a jump (far above the usual step) where the loop
+    closures across it are rejected, or where jumps are rare, or that a fit leaves far off,
+    is judged as any edge where that explains the data better
+    (:mod:`~rotavg_ros.core.robust.odometry_breaks`; diagnostic
+    ``distrusted_odometry_edges``)."""
     class_noise: bool = field(default=True, metadata=_flat("class_noise"))
     """Where the weights do not tell the odometry (``odometry``) from the loop closures (the
     same median weight in both: a front end that reports no covariances, pairs measured

@@ -39,7 +39,8 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    :mod:`.odometry_breaks`), the pass runs again with the suspects as ordinary edges,
    from the odometry's pieces joined where the most closures agree, and that fit stands
    where its truncated squares, with ``BREAK_PENALTY`` caps for each suspect it leaves out
-   that is no jump, are the lower (:func:`_breaks_explain_more`).
+   that is only a misfit (no jump pointed at or rare), are the lower
+   (:func:`_breaks_explain_more`).
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
    (:mod:`.relocalize`); if that lowers the choice cost, step 3 runs again from there. The
    DMF solution's far-off nodes move the same way. Last, on a sparse graph, least squares
@@ -124,9 +125,9 @@ odometry chain keeps the flat start: the chain's drift is what it must escape.""
 BREAK_PENALTY = 3.0
 """Odometry suspects of a break (:mod:`.odometry_breaks`) become ordinary edges only where
 the fit without trusting them has truncated squares lower, by this many caps for each
-suspect it leaves out that is no jump (besides that edge's own cap), than the fit that
-trusted them: cutting such a step must free several closures (see
-:func:`_breaks_explain_more`)."""
+suspect it leaves out that is only a misfit, no jump pointed at or rare (besides that
+edge's own cap), than the fit that trusted them: cutting such a step must free several
+closures (see :func:`_breaks_explain_more`)."""
 
 PAIRWISE_ALWAYS_UP_TO = 200
 """The tight pass runs its pairwise closure test whatever its starts say on a graph with at
@@ -202,8 +203,8 @@ class VerifyOutcome:
     resolve_gaussian: bool = False
     """The re-solve's residuals look Gaussian (:attr:`RobustSolve.gaussian`)."""
     distrusted: int = 0
-    """Odometry edges the re-solve stopped trusting and left out (:attr:`RobustSolve.
-    distrusted`), whichever solution is kept."""
+    """Odometry edges the re-solve stopped trusting (:attr:`RobustSolve.distrusted`) that
+    the kept solution leaves out."""
 
 
 def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> BoolArray:
@@ -460,9 +461,10 @@ class RobustSolve:
     """The final fit's standardized inlier residuals look Gaussian on the axes they span
     (:func:`~.noise.looks_gaussian` with their rotation vectors): least squares is then the
     better estimator."""
-    distrusted: int = 0
-    """Odometry edges no longer trusted and left out: the loop closures across them
-    disagreed with them (:mod:`.odometry_breaks`)."""
+    distrusted: BoolArray | None = None
+    """Odometry edges no longer trusted: the loop closures across them disagreed with them
+    (:mod:`.odometry_breaks`); None: every odometry edge trusted. Those a kept solution
+    leaves out are counted as distrusted (:attr:`VerifyOutcome.distrusted`)."""
 
 
 def verify(
@@ -509,7 +511,8 @@ def robust_resolve(
     with sparse loop closures) always gets step 4 with the pairwise closure test."""
     odometry = np.zeros(i.size, bool) if known_inlier is None else known_inlier
     known = np.zeros(i.size, bool)  # trusted edges: none until the noise scale is known
-    runs_left_out = distrusted = 0
+    runs_left_out = 0
+    distrusted: BoolArray | None = None  # odometry no longer trusted (suspects of a break)
 
     def cost(rotations: FloatArray) -> float:
         return truncated_l1(rotations, i, j, R, w, cap, known)
@@ -551,9 +554,9 @@ def robust_resolve(
     # fit, and a few false ones can bend it until every residual is inside (a 100-keyframe
     # chain with 8 true and 2 false closures: no outlier, 7.1 deg per axis against the
     # odometry's 1.4). Without odometry there is nothing to judge the closures by.
-    step3_residuals = residual_angles(rot, i, j, R) * np.sqrt(w)
     chain_like = has_odometry and redundancy(num_nodes, inlier) < chain_below
     if math.isfinite(noise.sigma) and has_odometry and (chain_like or not inlier.all()):
+        step3_residuals = residual_angles(rot, i, j, R) * np.sqrt(w)
         tight = functools.partial(_tight_pass, num_nodes, i, j, R, w, step3=(
             rot, inlier, noise, t), tree=tree, rounds=rounds, max_threshold=max_threshold,
             initial_threshold=initial_threshold, workers=workers, chain_like=chain_like)
@@ -570,11 +573,13 @@ def robust_resolve(
         suspects = suspect_odometry(num_nodes, i, j, R, odometry, tight_fit.inlier, misfit)
         if suspects.edges.any():
             trusted = odometry & ~suspects.edges
-            joined = odometry_start(num_nodes, i, j, R, w, trusted, initial_threshold)
+            # The pieces join where the most closures agree: a suspect step counts as one
+            # closure there, not at the odometry's weight, which would outvote them all.
+            w_join = np.where(suspects.edges, float(np.median(w[~odometry])), w)
+            joined = odometry_start(num_nodes, i, j, R, w_join, trusted, initial_threshold)
             untrusting = tight(trusted, {"odometry": joined})
             if _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, suspects):
-                tight_fit, known = untrusting, trusted
-                distrusted = int(np.count_nonzero(suspects.edges & ~untrusting.inlier))
+                tight_fit, known, distrusted = untrusting, trusted, suspects.edges
         rot, inlier, noise, t = (tight_fit.rotations, tight_fit.inlier, tight_fit.noise,
                                  tight_fit.t)
         runs_left_out = tight_fit.runs_left_out
@@ -699,10 +704,13 @@ def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
     the data better than the pass that trusted them: its truncated squares
     (:func:`truncated_squares`, at ``GNC_SIGMAS`` times the lower of the two fits' noise
     scales, the suspects capped in both) plus ``BREAK_PENALTY`` caps for each suspect it
-    leaves out that is no jump (``jumps``) are below the trusting pass's. Odometry is
-    rarely wrong, and a group of consistent false closures can claim that a true step is:
-    cutting a step that is no jump must free several closures. A jump, a measured step
-    far above the usual, is suspect by itself."""
+    leaves out that is not among ``suspects.jumps`` are below the trusting pass's. Odometry
+    is rarely wrong, and a group of consistent false closures can claim that a true step
+    is: cutting a step suspect only as a misfit must free several closures. A jump the
+    closures point at, or a rare one, needs only its own cap. Noise scales that are not
+    finite: no cut."""
+    if not (math.isfinite(trusting.noise.sigma) and math.isfinite(untrusting.noise.sigma)):
+        return False
     c = GNC_SIGMAS * min(trusting.noise.sigma, untrusting.noise.sigma)
     cut = int(np.count_nonzero(suspects.edges & ~untrusting.inlier & ~suspects.jumps))
     return bool(truncated_squares(untrusting.rotations, i, j, R, w, c, trusted)
@@ -871,7 +879,13 @@ def choose(
     return VerifyOutcome(dmf_rotations, dmf_inlier, dmf_noise, "dmf", costs, robust.start,
                          int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known,
                          classified | known, runs_left_out=robust.runs_left_out,
-                         resolve_gaussian=robust.gaussian, distrusted=robust.distrusted)
+                         resolve_gaussian=robust.gaussian,
+                         distrusted=_count(robust.distrusted, classified | known))
+
+
+def _count(distrusted: BoolArray | None, inlier: BoolArray) -> int:
+    """The distrusted odometry edges that a kept solution leaves out (``~inlier``)."""
+    return 0 if distrusted is None else int(np.count_nonzero(distrusted & ~inlier))
 
 
 def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutcome:
@@ -880,5 +894,5 @@ def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutco
                          robust.start, int(np.sum(np.isnan(robust.t) & ~robust.tree)),
                          robust.cap, robust.relocalized, robust.known, robust.inlier,
                          robust.restarted, robust.runs_left_out, robust.gaussian,
-                         robust.distrusted)
+                         _count(robust.distrusted, robust.inlier))
 
