@@ -138,3 +138,11 @@ def test_diagnostics_warn_of_odometry_left_out() -> None:
                                                 settings_from_parameters({}))
     assert values["distrusted_odometry_edges"] == res.num_distrusted_odometry == 1
     assert level == Level.WARN and "1 odometry edge(s)" in message
+
+
+def test_a_chain_without_closures_keeps_its_jump() -> None:
+    # Nothing crosses the jump: no fit can judge it, and the solver must not fail on it.
+    i, j, R, _ = _chain_with_closures(300, [], broken=150)
+    g = rc.RegimeCase("test/bare", "chain", 300, i, j, R, np.tile(np.eye(3), (300, 1, 1)))
+    res = RotationAverager(SolverOptions()).solve(g.view_graph())
+    assert res.num_distrusted_odometry == 0 and bool(np.all(res.edge_inlier))

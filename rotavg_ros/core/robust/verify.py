@@ -571,7 +571,7 @@ def robust_resolve(
                   | (residual_angles(tight_fit.rotations, i, j, R) * np.sqrt(w)
                      > GNC_SIGMAS * tight_fit.noise.sigma))
         suspects = suspect_odometry(num_nodes, i, j, R, odometry, tight_fit.inlier, misfit)
-        if suspects.edges.any():
+        if suspects.edges.any() and not odometry.all():  # (no closure: nothing to judge by)
             trusted = odometry & ~suspects.edges
             # The pieces join where the most closures agree: a suspect step counts as one
             # closure there, not at the odometry's weight, which would outvote them all.
