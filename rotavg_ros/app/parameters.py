@@ -119,9 +119,11 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
     ParameterSpec(
         "odometry", _SOLVER.verify.odometry,
         "Which edges the default profile's verification trusts as odometry (known inliers, "
-        "never outvoted by loop closures): consecutive (frames adjacent in the order they "
-        "were first seen, e.g. consecutive keyframes), none, or auto (consecutive when they "
-        "chain at least 90% of the frames of a sparse graph; an SfM view graph: none).",
+        "never outvoted by loop closures): consecutive (frames adjacent in their names' "
+        "natural order, kf_9 before kf_10, where that chains more frames than the order "
+        "they were first seen, else that order; e.g. consecutive keyframes), none, or auto "
+        "(consecutive when they chain at least 90% of the frames of a sparse graph; an SfM "
+        "view graph: none).",
         choices=("auto", "consecutive", "none")),
     ParameterSpec(
         "class_noise", _SOLVER.verify.class_noise,

@@ -320,9 +320,12 @@ class VerifyOptions:
     higher). Off: the kept solution stands as fitted."""
     odometry: str = field(default="auto", metadata=_flat("odometry"))
     """Which edges are odometry, trusted as inliers by the re-solve and never capped in the
-    choice cost: ``consecutive`` (nodes adjacent in the order they were first added, e.g.
-    consecutive keyframes), ``none``, or ``auto`` (consecutive, when they chain at least 90%
-    of the nodes of a graph sparse enough for sparse mode; else none). A SLAM front end's
+    choice cost: ``consecutive`` (nodes adjacent in the graph's sequence, e.g.
+    consecutive keyframes: their ids' natural order, integers by value and names with
+    their digits read as numbers, where that chains more nodes than the order they were
+    first added, else that order; :mod:`~rotavg_ros.core.node_sequence`), ``none``, or
+    ``auto`` (consecutive, when they chain at least 90% of the nodes of a graph sparse
+    enough for sparse mode; else none). A SLAM front end's
     odometry is rarely wrong, and a group of consistent false closures can outvote the few
     edges that cross a weakly connected part of the graph, unless those edges are trusted.
     Rarely is not never: a step that is a jump (far above the usual step) where the loop

@@ -31,6 +31,7 @@ from rotavg_ros.core.dmf import (
 )
 from rotavg_ros.core.dmf.sparse import huber_delta, shows_outliers
 from rotavg_ros.core.filter.edge_filter import filter_edges
+from rotavg_ros.core.node_sequence import node_sequence
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.class_noise import class_noise
@@ -176,6 +177,9 @@ class RotationAverager:
 
         ``anchor`` (a node id; default: the first node added) gets identity; each other
         component is anchored at its first-added node. Component label 0 is the anchor's.
+        The odometry (``verify.odometry``) joins nodes consecutive in the graph's sequence:
+        ascending id where every id is an integer and that chains more nodes than the order
+        they were added, else that order (:func:`~.node_sequence.node_sequence`).
 
         ``initial`` (node id -> world-to-node rotation, any gauge), e.g. the previous
         solution of a growing graph, warm-starts the solve: known nodes start there, new
@@ -195,6 +199,7 @@ class RotationAverager:
         out = average_rotations(
             graph.num_nodes, edges.i, edges.j, edges.R, edges.weight, self.options,
             anchor=anchor_idx, initial=init, initial_depth=initial_depth,
+            sequence=node_sequence(ids, edges.i, edges.j),
         )
         residuals = _residuals_deg(out.rotations, edges.i, edges.j, edges.R)
         return SolveResult(
@@ -842,8 +847,14 @@ def average_rotations(
     anchor: int = 0,
     initial: FloatArray | None = None,
     initial_depth: int | None = None,
+    sequence: IntArray | None = None,
 ) -> ArraySolution:
-    """Array interface: solve each component; see :meth:`RotationAverager.solve`."""
+    """Array interface: solve each component; see :meth:`RotationAverager.solve`.
+
+    ``sequence`` (N,): each node's position along the trajectory
+    (:func:`~.node_sequence.node_sequence`; default: index order). Each component is solved
+    with its nodes in that order, so that the odometry joins consecutive local indices, and
+    then turned so that its anchor (``anchor``, or its first node by index) is identity."""
     t0 = time.perf_counter()
     averager = RotationAverager(options)
     i = np.asarray(i, np.int64)
@@ -862,11 +873,11 @@ def average_rotations(
     runs_left_out, distrusted, odometry_weight = 0, 0, 1.0
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
-        if label == 0 and anchor in nodes:
-            nodes = np.concatenate([[anchor], nodes[nodes != anchor]])
-        comp_anchor.append(int(nodes[0]))
+        comp_anchor.append(anchor if label == 0 and anchor in nodes else int(nodes[0]))
         if nodes.size < 2:
             continue
+        if sequence is not None:
+            nodes = nodes[np.argsort(sequence[nodes], kind="stable")]
         local = np.full(num_nodes, -1, np.int64)
         local[nodes] = np.arange(nodes.size)
         sel = np.flatnonzero(labels[i] == label)
@@ -877,7 +888,8 @@ def average_rotations(
         sol = averager.solve_component(
             nodes.size, li, lj, lR, weight[sel],
             None if initial is None else initial[nodes], initial_depth)
-        rotations[nodes] = sol.rotations
+        rotations[nodes] = _anchored(sol.rotations, int(np.flatnonzero(
+            nodes == comp_anchor[-1])[0]))
         kept[sel] = sol.kept
         filter_kept[sel] = sol.filter_kept
         untested += sol.untested
@@ -894,6 +906,16 @@ def average_rotations(
                          time.perf_counter() - t0, iterations, filter_kept, noise,
                          verification, untested, relocalized, trusted, pruned, runs_left_out,
                          distrusted, odometry_weight)
+
+
+def _anchored(rotations: FloatArray, anchor: int) -> FloatArray:
+    """World-to-node ``rotations`` in the gauge where node ``anchor`` is identity
+    (``R_i R_a^T``; the edges' ``R_i R_j^T`` are the same in every gauge)."""
+    if anchor == 0:  # (solve_component's own gauge)
+        return rotations
+    turned = project_to_so3(np.einsum("nab,cb->nac", rotations, rotations[anchor]))
+    turned[anchor] = np.eye(3)
+    return turned
 
 
 def _component_labels(num_nodes: int, i: IntArray, j: IntArray, anchor: int) -> IntArray:

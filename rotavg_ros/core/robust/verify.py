@@ -223,10 +223,11 @@ def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> 
 def odometry_edges(num_nodes: int, i: IntArray, j: IntArray, rule: str,
                    max_mean_degree: float) -> BoolArray:
     """The edges trusted as odometry, by ``rule``: ``consecutive`` (nodes adjacent in the
-    order they were added), ``none``, or ``auto``: consecutive edges when they chain at
-    least ODOMETRY_COVERAGE of the nodes and the graph is sparse (mean degree below
-    ``max_mean_degree``: a SLAM pose graph, not an SfM view graph, whose consecutive
-    images are just another pair)."""
+    node indices, which the solver lays out in the graph's sequence,
+    :func:`~rotavg_ros.core.node_sequence.node_sequence`), ``none``, or ``auto``:
+    consecutive edges when they chain at least ODOMETRY_COVERAGE of the nodes and the
+    graph is sparse (mean degree below ``max_mean_degree``: a SLAM pose graph, not an SfM
+    view graph, whose consecutive images are just another pair)."""
     if rule not in ("auto", "consecutive", "none"):
         raise ValueError(f"odometry must be auto, consecutive or none, got {rule!r}")
     consecutive = np.abs(i - j) == 1
