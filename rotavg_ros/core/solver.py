@@ -854,7 +854,8 @@ def average_rotations(
     ``sequence`` (N,): each node's position along the trajectory
     (:func:`~.node_sequence.node_sequence`; default: index order). Each component is solved
     with its nodes in that order, so that the odometry joins consecutive local indices, and
-    then turned so that its anchor (``anchor``, or its first node by index) is identity."""
+    its edges sorted by their local ends (else in the order given); then turned so that its
+    anchor (``anchor``, or its first node by index) is identity."""
     t0 = time.perf_counter()
     averager = RotationAverager(options)
     i = np.asarray(i, np.int64)
@@ -881,7 +882,12 @@ def average_rotations(
         local = np.full(num_nodes, -1, np.int64)
         local[nodes] = np.arange(nodes.size)
         sel = np.flatnonzero(labels[i] == label)
-        li, lj, lR = local[i[sel]], local[j[sel]], R[sel]
+        li, lj = local[i[sel]], local[j[sel]]
+        if sequence is not None:  # edges in local (i, j) order: the solve then depends on
+            # the graph and its sequence, not on the order the input named the nodes in
+            by_pair = np.lexsort((np.maximum(li, lj), np.minimum(li, lj)))
+            sel, li, lj = sel[by_pair], li[by_pair], lj[by_pair]
+        lR = R[sel]
         swap = li > lj
         li, lj = np.where(swap, lj, li), np.where(swap, li, lj)
         lR = np.where(swap[:, None, None], lR.transpose(0, 2, 1), lR)
