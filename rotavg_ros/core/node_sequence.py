@@ -9,16 +9,19 @@ The odometry rule (``verify.odometry``, :func:`~.robust.verify.odometry_edges`) 
 finds a chain, and the false closures go unchecked (``chain/1000/rand40``'s edges sorted:
 65.4 deg mean error against 3.4 deg).
 
-So the sequence is one of two orders, whichever chains more of the nodes with edges:
+So the sequence is one of these orders, whichever chains more of the nodes with edges:
 
 - **the natural order of the ids**: integers by value (keyframe numbers, in whatever
   order the edges name them, with gaps or a stride), names by their text with each run of
   digits read as a number (``kf_9`` before ``kf_10``; two robots' ``a_12`` and ``b_12``
   each in their own run);
 - **the order the nodes were first named** (the one kept on a tie, and for ids that are
-  neither integers nor text).
-
-Neither order can tell the odometry of ids that carry no order (random labels).
+  neither integers nor text);
+- where neither chains ``ODOMETRY_COVERAGE`` of the nodes (ids that carry no order:
+  random labels), **the graph's own paths** (:func:`path_order`), if they do: a keyframe
+  that closes no loop has two edges, both odometry, so the edges at a node of degree at
+  most two are the odometry's, and they form its paths; where two keyframes that both
+  close loops follow each other, the one edge between the two paths' ends joins them.
 """
 
 from __future__ import annotations
@@ -28,8 +31,11 @@ import re
 from collections.abc import Hashable, Sequence
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
-from rotavg_ros.core.types import IntArray
+from rotavg_ros.core.robust.verify import ODOMETRY_COVERAGE
+from rotavg_ros.core.types import BoolArray, IntArray
 
 _DIGITS = re.compile(r"(\d+)")
 
@@ -39,12 +45,77 @@ def node_sequence(node_ids: Sequence[Hashable], i: IntArray, j: IntArray) -> Int
     ``0 .. N-1``, indexed by dense index; ``i``, ``j`` are the edges' dense indices."""
     n = len(node_ids)
     added = np.arange(n, dtype=np.int64)
-    keys = [key for key in map(natural_key, node_ids) if key is not None]
-    if len(keys) < n:
-        return added
-    natural = np.empty(n, np.int64)
-    natural[sorted(range(n), key=lambda m: keys[m])] = added
-    return natural if chained(natural, i, j) > chained(added, i, j) else added
+    best = added
+    natural = _natural_order(node_ids)
+    if natural is not None:
+        rank = np.empty(n, np.int64)
+        rank[natural] = added
+        if chained(rank, i, j) > chained(added, i, j):
+            best = rank
+    enough = ODOMETRY_COVERAGE * max(n - 1, 1)
+    if chained(best, i, j) >= enough:
+        return best
+    a, b, step = path_steps(n, i, j)
+    if np.count_nonzero(step) < enough:  # (a path order chains at most its steps)
+        return best
+    rank = np.empty(n, np.int64)
+    rank[_walk(n, a[step], b[step])] = added
+    return rank if chained(rank, i, j) >= enough else best
+
+
+def path_order(n: int, i: IntArray, j: IntArray) -> IntArray:
+    """The nodes (dense indices) path by path along :func:`path_steps`; a ring is cut at
+    its lowest index. Paths come in the order of their lower end's index, each walked from
+    that end."""
+    a, b, step = path_steps(n, i, j)
+    return _walk(n, a[step], b[step])
+
+
+def path_steps(n: int, i: IntArray, j: IntArray) -> tuple[IntArray, IntArray, BoolArray]:
+    """The graph's node pairs ``(a, b)``, ``a < b``, one per pair of nodes joined by an edge,
+    and which of them are the steps of its paths (module docstring): the pairs at a node of
+    degree at most two, but none at a node with more than two of them (a loop closure to a
+    chain's end), and the bridges between paths (:func:`_bridges`)."""
+    pair = np.unique(np.minimum(i, j) * np.int64(n) + np.maximum(i, j))
+    a, b = pair // n, pair % n
+    degree = np.bincount(np.r_[a, b], minlength=n)
+    step = (degree[a] <= 2) | (degree[b] <= 2)
+    steps_at = np.bincount(np.r_[a[step], b[step]], minlength=n)
+    step &= (steps_at[a] <= 2) & (steps_at[b] <= 2)
+    return a, b, step | _bridges(n, a, b, step)
+
+
+def _walk(n: int, a: IntArray, b: IntArray) -> IntArray:
+    """Every node once, along the steps ``(a, b)`` (at most two at a node): from each path
+    end in index order, then around what is left (rings)."""
+    nxt: list[list[int]] = [[] for _ in range(n)]
+    for u, v in zip(a.tolist(), b.tolist(), strict=True):
+        nxt[u].append(v)
+        nxt[v].append(u)
+    order: list[int] = []
+    seen = np.zeros(n, bool)
+    ends = [k for k in range(n) if len(nxt[k]) <= 1]
+    for start in ends + list(range(n)):
+        prev, cur = -1, start
+        while cur >= 0 and not seen[cur]:
+            seen[cur] = True
+            order.append(cur)
+            prev, cur = cur, next((m for m in nxt[cur] if m != prev and not seen[m]), -1)
+    return np.asarray(order, np.int64)
+
+
+def _natural_order(node_ids: Sequence[Hashable]) -> IntArray | None:
+    """The dense indices in the ids' natural order (:func:`natural_key`, stable); None
+    where some id has no natural key."""
+    if all(type(k) is int for k in node_ids):
+        try:  # plain integers (the usual case): sorted in numpy
+            return np.argsort(np.array(node_ids, np.int64), kind="stable").astype(np.int64)
+        except OverflowError:
+            pass
+    keys = [natural_key(k) for k in node_ids]
+    if any(k is None for k in keys):
+        return None
+    return np.array(sorted(range(len(keys)), key=lambda m: keys[m] or ()), np.int64)
 
 
 def natural_key(node_id: Hashable) -> tuple[tuple[int, int | str], ...] | None:
@@ -56,6 +127,21 @@ def natural_key(node_id: Hashable) -> tuple[tuple[int, int | str], ...] | None:
         return None
     return tuple((0, int(part)) if _DIGITS.fullmatch(part) else (1, part)
                  for part in _DIGITS.split(node_id) if part)
+
+
+def _bridges(n: int, a: IntArray, b: IntArray, step: BoolArray) -> BoolArray:
+    """The edges that join the ends of two different paths of ``step`` where no end is
+    offered more such edges than it has room for (a path's end one, a lone node two): the
+    steps between keyframes that both close loops. (Each such keyframe's other edges are
+    its path's step and its closure, which ends inside another path.)"""
+    steps_at = np.bincount(np.r_[a[step], b[step]], minlength=n)
+    _, path = connected_components(
+        coo_matrix((np.ones(int(step.sum())), (a[step], b[step])), shape=(n, n)),
+        directed=False)
+    room = 2 - steps_at
+    bridge = ~step & (room[a] >= 1) & (room[b] >= 1) & (path[a] != path[b])
+    offers = np.bincount(np.r_[a[bridge], b[bridge]], minlength=n)
+    return bridge & (offers[a] <= room[a]) & (offers[b] <= room[b])
 
 
 def chained(rank: IntArray, i: IntArray, j: IntArray) -> int:
