@@ -1,12 +1,14 @@
 """The same graphs, with their nodes named in different orders (issue 14: graphs nobody tuned on).
 
-``python -m benchmarks.node_order [--seed 0] [--cases chain/,slam/parking-garage/rand5]``
+``python -m benchmarks.node_order [--seed 0] [--cases chain/,slam/parking-garage/rand5]
+[--stress]``
 
 The default profile trusts the odometry (option ``odometry``, ``auto``): edges between
 nodes consecutive in the graph's sequence (:mod:`rotavg_ros.core.node_sequence`). A user's
 input need not name the nodes in that order. Each record case
 (:func:`~benchmarks.regime_cases.all_cases`, default: the chains and three SLAM graphs with
-false closures) is solved in process as:
+false closures; ``--stress``: instead, every chain-family variant of
+:mod:`benchmarks.regime_stress`) is solved in process as:
 
 - ``in order``: its nodes added first, in id order (as :mod:`benchmarks.regimes` does);
 - ``sorted edges``: edges only, sorted by ``(i, j)``, so each closure names its far end
@@ -26,7 +28,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +36,7 @@ import numpy as np
 from benchmarks import peers
 from benchmarks.datasets import shared_dir_or_say
 from benchmarks.regime_cases import RegimeCase, all_cases, rng_for
+from benchmarks.regime_stress import stress_cases
 from benchmarks.regimes import our_options
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.solver import RotationAverager
@@ -87,24 +90,41 @@ def peer(case: RegimeCase) -> str:
     return f"{stats.mean_deg:.3f} / {stats.median_deg:.3f}"
 
 
+def _cases(args: argparse.Namespace) -> Iterator[RegimeCase]:
+    """The cases ``args`` ask for, drawn one at a time."""
+    if args.stress:
+        shared = shared_dir_or_say("benchmarks.node_order")
+        if shared is None:
+            return
+        for build in stress_cases(shared, args.seed, "folded"):
+            case = build()
+            if case.family == "chain":
+                yield case
+        return
+    wanted = args.cases.split(",")
+    builders = {k: b for k, b in all_cases(args.seed).items()
+                if any(k.startswith(w) for w in wanted)}
+    found: Path | None = None
+    if any(not k.startswith("chain/") for k in builders):
+        found = shared_dir_or_say("benchmarks.node_order")
+        if found is None:
+            builders = {k: b for k, b in builders.items() if k.startswith("chain/")}
+    for build in builders.values():
+        yield build(found if found is not None else Path("."))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cases", default=",".join(DEFAULT_CASES),
                     help="comma-separated prefixes of record case names")
+    ap.add_argument("--stress", action="store_true",
+                    help="the chain-family variants of benchmarks.regime_stress instead")
     args = ap.parse_args()
-    wanted = args.cases.split(",")
-    builders = {k: b for k, b in all_cases(args.seed).items()
-                if any(k.startswith(w) for w in wanted)}
-    shared: Path | None = None
-    if any(not k.startswith("chain/") for k in builders):
-        shared = shared_dir_or_say("benchmarks.node_order")
-        if shared is None:
-            builders = {k: b for k, b in builders.items() if k.startswith("chain/")}
     print("| case | in order | sorted edges | names | labels | oracle | GNC-TLS |")
     print("|---|---|---|---|---|---|---|")
-    for key, build in builders.items():
-        case = build(shared if shared is not None else Path("."))
+    for case in _cases(args):
+        key = case.name
         cells = []
         for g, name in graphs(case, args.seed).values():
             mean, median, trusted = solve(g, name, case)

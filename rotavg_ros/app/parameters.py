@@ -121,7 +121,8 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         "Which edges the default profile's verification trusts as odometry (known inliers, "
         "never outvoted by loop closures): consecutive (frames adjacent in their names' "
         "natural order, kf_9 before kf_10, where that chains more frames than the order "
-        "they were first seen, else that order; e.g. consecutive keyframes), none, or auto "
+        "they were first seen, else that order; for ids with no order, the graph's own "
+        "paths of frames with two edges; e.g. consecutive keyframes), none, or auto "
         "(consecutive when they chain at least 90% of the frames of a sparse graph; an SfM "
         "view graph: none).",
         choices=("auto", "consecutive", "none")),

@@ -323,7 +323,8 @@ class VerifyOptions:
     choice cost: ``consecutive`` (nodes adjacent in the graph's sequence, e.g.
     consecutive keyframes: their ids' natural order, integers by value and names with
     their digits read as numbers, where that chains more nodes than the order they were
-    first added, else that order; :mod:`~rotavg_ros.core.node_sequence`), ``none``, or
+    first added, else that order; where neither chains 90% of the nodes, the graph's own
+    paths of nodes of degree at most two; :mod:`~rotavg_ros.core.node_sequence`), ``none``, or
     ``auto`` (consecutive, when they chain at least 90% of the nodes of a graph sparse
     enough for sparse mode; else none). A SLAM front end's
     odometry is rarely wrong, and a group of consistent false closures can outvote the few
