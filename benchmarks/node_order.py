@@ -96,8 +96,8 @@ def _cases(args: argparse.Namespace) -> Iterator[RegimeCase]:
         shared = shared_dir_or_say("benchmarks.node_order")
         if shared is None:
             return
-        for build in stress_cases(shared, args.seed, "folded"):
-            case = build()
+        for draw in stress_cases(shared, args.seed, "folded"):
+            case = draw()
             if case.family == "chain":
                 yield case
         return
