@@ -50,10 +50,13 @@ Name = Callable[[int], Hashable]
 
 def graphs(case: RegimeCase, seed: int) -> dict[str, tuple[ViewGraph, Name]]:
     """The case's graph in each order of the module docstring, with each node's id."""
+    def weight(order: np.ndarray) -> np.ndarray | None:
+        return None if case.weight is None else case.weight[order]
+
     def edges_only(name: Name, order: np.ndarray) -> ViewGraph:
         g = ViewGraph()
         g.add_edges([name(int(k)) for k in case.i[order]],
-                    [name(int(k)) for k in case.j[order]], case.R[order])
+                    [name(int(k)) for k in case.j[order]], case.R[order], weight(order))
         return g
 
     by_id = np.lexsort((np.maximum(case.i, case.j), np.minimum(case.i, case.j)))
@@ -61,7 +64,8 @@ def graphs(case: RegimeCase, seed: int) -> dict[str, tuple[ViewGraph, Name]]:
     relabelled = ViewGraph()
     for node in np.argsort(label):  # in order of the new labels
         relabelled.add_node(int(label[node]))
-    relabelled.add_edges(label[case.i].tolist(), label[case.j].tolist(), case.R)
+    relabelled.add_edges(label[case.i].tolist(), label[case.j].tolist(), case.R,
+                         weight(np.arange(case.num_edges)))
 
     def kf(k: int) -> Hashable:
         return f"kf_{k}"

@@ -26,6 +26,8 @@ def test_natural_order_reads_digits_as_numbers() -> None:
     assert _natural([12, 3, 100]) == [3, 12, 100]
     assert natural_key(np.int64(7)) == natural_key(7)
     assert natural_key(True) is None and natural_key((1, 2)) is None
+    # Digit runs compare by value with no conversion: no limit on their length.
+    assert _natural(["a" + "1" * 5000, "a9", "a010", 7]) == [7, "a9", "a010", "a" + "1" * 5000]
 
 
 def test_the_order_that_chains_more_nodes_wins() -> None:

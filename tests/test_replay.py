@@ -606,7 +606,7 @@ def test_replay_equals_the_live_node(tmp_path: Path) -> None:
                     client.pub_odom.publish(deserialize_message(rec.data, Odometry))
                 sent += 1
                 # one at a time: across two topics DDS/the executor may reorder messages, and
-                # the arrival order sets the node order, the anchor and so the DMF start
+                # the arrival order sets the anchor and breaks the node order's ties
                 assert wait_until(
                     lambda n=sent: node.accumulator.stats().received >= n, 15.0)  # type: ignore[misc]
         response = client.solve(timeout=120.0)

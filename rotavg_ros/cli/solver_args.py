@@ -21,7 +21,10 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--odometry", default=d.verify.odometry,
                    choices=("auto", "consecutive", "none"),
                    help="which edges the default profile's verification trusts as odometry: "
-                   "consecutive (nodes adjacent in file / arrival order), none, or auto "
+                   "consecutive (nodes adjacent in their ids' natural order, kf_9 before "
+                   "kf_10, where that chains more nodes than the order first named, else "
+                   "that order; for ids with no order, the graph's own paths of nodes with "
+                   "two edges), none, or auto "
                    "(consecutive when they chain >= 90%% of the nodes of a sparse graph) "
                    "(default %(default)s)")
     g.add_argument("--no-class-noise", action="store_true",

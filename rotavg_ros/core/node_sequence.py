@@ -56,17 +56,17 @@ def node_sequence(node_ids: Sequence[Hashable], i: IntArray, j: IntArray) -> Int
     if chained(best, i, j) >= enough:
         return best
     a, b, step = path_steps(n, i, j)
-    if np.count_nonzero(step) < enough:  # (a path order chains at most its steps)
-        return best
+    if np.count_nonzero(step) < enough:  # (a path order chains little more than its
+        return best  # steps: an edge between one path's end and the next path's start)
     rank = np.empty(n, np.int64)
     rank[_walk(n, a[step], b[step])] = added
     return rank if chained(rank, i, j) >= enough else best
 
 
 def path_order(n: int, i: IntArray, j: IntArray) -> IntArray:
-    """The nodes (dense indices) path by path along :func:`path_steps`; a ring is cut at
-    its lowest index. Paths come in the order of their lower end's index, each walked from
-    that end."""
+    """The nodes (dense indices) path by path along :func:`path_steps`: the paths in the
+    order of their lower end's index, each walked from that end, then the rings, each cut
+    at its lowest index."""
     a, b, step = path_steps(n, i, j)
     return _walk(n, a[step], b[step])
 
@@ -119,14 +119,21 @@ def _natural_order(node_ids: Sequence[Hashable]) -> IntArray | None:
 
 
 def natural_key(node_id: Hashable) -> tuple[tuple[int, int | str], ...] | None:
-    """The id's place in the natural order: an integer by value, a name by its text with
-    each run of digits read as a number; None for any other id."""
+    """The id's place in the natural order: an integer by value (integers before names), a
+    name by its text with each run of digits read as a number; None for any other id."""
     if isinstance(node_id, numbers.Integral) and not isinstance(node_id, bool):
         return ((0, int(node_id)),)
     if not isinstance(node_id, str):
         return None
-    return tuple((0, int(part)) if _DIGITS.fullmatch(part) else (1, part)
+    return tuple(_number(part) if _DIGITS.fullmatch(part) else (2, part)
                  for part in _DIGITS.split(node_id) if part)
+
+
+def _number(digits: str) -> tuple[int, str]:
+    """A run of digits in a name, ordered by its value (its length without leading zeros,
+    then its text: no conversion, so no limit on its length) and before text."""
+    value = digits.lstrip("0")
+    return (1, f"{len(value):012d}{value}")
 
 
 def _bridges(n: int, a: IntArray, b: IntArray, step: BoolArray) -> BoolArray:

@@ -57,7 +57,8 @@ from rotavg_ros.errors import SolverError
 
 @dataclass
 class ComponentSolution:
-    """Rotations of one connected component in local indexing (anchor = identity)."""
+    """Rotations of one connected component in local indexing (local node 0 = identity;
+    :func:`average_rotations` then turns the component to its anchor)."""
 
     rotations: FloatArray
     kept: BoolArray
@@ -165,6 +166,12 @@ class RotationAverager:
         self.options = options or SolverOptions()
         self.options.validate()
 
+    @property
+    def _trusts_odometry(self) -> bool:
+        """Whether the solve may trust odometry, which the node sequence tells."""
+        verify = self.options.verify
+        return verify.enabled and verify.odometry != "none"
+
     # ------------------------------------------------------------------ public
     def solve(
         self,
@@ -177,9 +184,9 @@ class RotationAverager:
 
         ``anchor`` (a node id; default: the first node added) gets identity; each other
         component is anchored at its first-added node. Component label 0 is the anchor's.
-        The odometry (``verify.odometry``) joins nodes consecutive in the graph's sequence:
-        ascending id where every id is an integer and that chains more nodes than the order
-        they were added, else that order (:func:`~.node_sequence.node_sequence`).
+        The odometry (``verify.odometry``) joins nodes consecutive in the graph's sequence
+        (:func:`~.node_sequence.node_sequence`: the ids' natural order or the order the
+        nodes were added, whichever chains more nodes, else the graph's own paths).
 
         ``initial`` (node id -> world-to-node rotation, any gauge), e.g. the previous
         solution of a growing graph, warm-starts the solve: known nodes start there, new
@@ -199,7 +206,7 @@ class RotationAverager:
         out = average_rotations(
             graph.num_nodes, edges.i, edges.j, edges.R, edges.weight, self.options,
             anchor=anchor_idx, initial=init, initial_depth=initial_depth,
-            sequence=node_sequence(ids, edges.i, edges.j),
+            sequence=node_sequence(ids, edges.i, edges.j) if self._trusts_odometry else None,
         )
         residuals = _residuals_deg(out.rotations, edges.i, edges.j, edges.R)
         return SolveResult(
@@ -231,7 +238,7 @@ class RotationAverager:
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
         initial: FloatArray | None = None, initial_depth: int | None = None,
     ) -> ComponentSolution:
-        """Solve one connected graph in local indices; node 0 is the anchor.
+        """Solve one connected graph in local indices; node 0 gets identity.
 
         ``initial`` (n, 3, 3) world-to-node rotations with NaN rows for unknown nodes.
         Where the weights do not tell the odometry from the loop closures (the same median
@@ -885,6 +892,7 @@ def average_rotations(
         li, lj = local[i[sel]], local[j[sel]]
         if sequence is not None:  # edges in local (i, j) order: the solve then depends on
             # the graph and its sequence, not on the order the input named the nodes in
+            # (but for pairs measured twice, which keep the order given)
             by_pair = np.lexsort((np.maximum(li, lj), np.minimum(li, lj)))
             sel, li, lj = sel[by_pair], li[by_pair], lj[by_pair]
         lR = R[sel]
