@@ -533,6 +533,30 @@ def broken_odometry_case(name: str, base: RegimeCase, *, steps: int,
     return replace(base, name=name, R=R, inlier=inlier, description=desc)
 
 
+def identity_false_case(name: str, base: RegimeCase) -> RegimeCase:
+    """``base`` with each false edge the identity rotation. What this tests: a front end
+    that reports identity where a match failed; identity edges agree with each other around
+    any loop of them, and with the truth wherever the true turn between the two ends is
+    small."""
+    bad = np.flatnonzero(~base.inlier) if base.inlier is not None else np.zeros(0, np.int64)
+    R = base.R.copy()
+    R[bad] = np.eye(3)
+    desc = f"{base.description or base.name}, its false edges identity"
+    return replace(base, name=name, R=R, description=desc)
+
+
+def reversed_case(name: str, base: RegimeCase, *, seed: int = 0) -> RegimeCase:
+    """``base`` with half its edges, drawn at random, given the other way round:
+    ``(j, i, R_ij^T)``, the same measurement. What this tests: the input's edge direction,
+    which the solver must read, not assume (odometry given as ``(k + 1, k)``)."""
+    flip = rng_for(name, seed).random(base.num_edges) < 0.5
+    i, j, R = base.i.copy(), base.j.copy(), base.R.copy()
+    i[flip], j[flip] = base.j[flip], base.i[flip]
+    R[flip] = np.swapaxes(base.R[flip], 1, 2)
+    desc = f"{base.description or base.name}, half its edges given reversed"
+    return replace(base, name=name, i=i, j=j, R=R, description=desc)
+
+
 # ------------------------------------------------------- chains in pieces, revisited routes
 
 

@@ -1,6 +1,6 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Fifty-four cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+Fifty-eight cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
 with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
@@ -21,7 +21,11 @@ from edge to edge and is not reported (lognormal about 2-5 deg;
 5-30 deg off the truth (:func:`~benchmarks.regime_cases.near_false_case`); and seven with
 one to five odometry steps false, as a front end that lost its track reports them, on
 chains, a revisited route and three SLAM graphs
-(:func:`~benchmarks.regime_cases.broken_odometry_case`). They look
+(:func:`~benchmarks.regime_cases.broken_odometry_case`); and four of input conventions: false
+closures that are the identity rotation, as a front end reports a failed match, on a chain
+and on parking-garage (:func:`~benchmarks.regime_cases.identity_false_case`), torus3D with
+half its edges given the other way round (:func:`~benchmarks.regime_cases.reversed_case`),
+and sphere2500 at 0.1 deg of noise with 10% false closures. They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
 ``paper`` profile (ours, the oracle, every installed peer) as the suite does
@@ -54,9 +58,11 @@ from benchmarks.regime_cases import (
     chain_case,
     dense_case,
     heteroscedastic_case,
+    identity_false_case,
     near_false_case,
     pieces_case,
     planar_case,
+    reversed_case,
     revisit_case,
     slam_case,
     unweighted_case,
@@ -113,6 +119,12 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
     def broken(name: str, base: Callable[[], RegimeCase], steps: int
                ) -> Callable[[], RegimeCase]:
         return lambda: broken_odometry_case(name, base(), steps=steps, seed=seed)
+
+    def identity(name: str, base: Callable[[], RegimeCase]) -> Callable[[], RegimeCase]:
+        return lambda: identity_false_case(name, base())
+
+    def flipped(name: str, base: Callable[[], RegimeCase]) -> Callable[[], RegimeCase]:
+        return lambda: reversed_case(name, base(), seed=seed)
 
     return [
         slam("stress/torus3D/noise5", "torus3D", noise_deg=5.0),
@@ -211,6 +223,14 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                slam("slam/sphere2500/rand10", "sphere2500", random_false=0.10), 5),
         broken("stress/odometry-breaks/torus3D/clean",
                slam("slam/torus3D/noise1", "torus3D"), 5),
+        identity("stress/identity/chain/1000/rand30",
+                 chain("chain/1000/rand30", 1000, closures=36, false_random=0.30)),
+        identity("stress/identity/parking-garage/rand10",
+                 slam("slam/parking-garage/rand10", "parking-garage", random_false=0.10)),
+        flipped("stress/reversed/torus3D/rand10",
+                slam("slam/torus3D/rand10", "torus3D", random_false=0.10)),
+        slam("stress/sphere2500/noise0.1+rand10", "sphere2500", noise_deg=0.1,
+             random_false=0.10),
     ]
 
 

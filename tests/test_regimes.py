@@ -129,6 +129,26 @@ def test_heteroscedastic_and_near_false_cases_draw_what_they_say() -> None:
     assert 5.0 - 1e-6 <= err[~true].min() and err[~true].max() <= 30.0 + 1e-6
 
 
+def test_identity_and_reversed_cases_draw_what_they_say() -> None:
+    """Identity: every false edge is the identity, the true ones as they were. Reversed:
+    about half the edges given as ``(j, i, R_ij^T)``, the same measurements, so the same
+    graph."""
+    base = rc.chain_case("test/chain300", 300, closures=30, false_random=0.2)
+    assert base.inlier is not None
+    true = base.inlier
+    ident = rc.identity_false_case("test/identity", base)
+    assert np.array_equal(ident.R[true], base.R[true])
+    assert np.allclose(ident.R[~true], np.eye(3), atol=0)
+    flipped = rc.reversed_case("test/reversed", base)
+    turned = flipped.i != base.i
+    assert 0.4 < turned.mean() < 0.6
+    assert np.array_equal(flipped.i[turned], base.j[turned])
+    assert np.array_equal(flipped.R[turned], np.swapaxes(base.R[turned], 1, 2))
+    a, b = base.view_graph().edge_arrays(), flipped.view_graph().edge_arrays()
+    assert np.array_equal(a.i, b.i) and np.array_equal(a.j, b.j)
+    assert np.allclose(a.R, b.R, atol=1e-15)
+
+
 def test_chain_has_no_triangles_and_odometry() -> None:
     case = _tiny_chain()
     assert rc.triangle_count(case.num_nodes, case.i, case.j) == 0
