@@ -44,23 +44,28 @@ def node_sequence(node_ids: Sequence[Hashable], i: IntArray, j: IntArray) -> Int
     """Each node's position in the sequence (module docstring): an (N,) permutation of
     ``0 .. N-1``, indexed by dense index; ``i``, ``j`` are the edges' dense indices."""
     n = len(node_ids)
-    added = np.arange(n, dtype=np.int64)
-    best = added
+    best = np.arange(n, dtype=np.int64)  # the order first named
+    best_chained = chained(best, i, j)
     natural = _natural_order(node_ids)
     if natural is not None:
-        rank = np.empty(n, np.int64)
-        rank[natural] = added
-        if chained(rank, i, j) > chained(added, i, j):
-            best = rank
+        rank = _rank(natural)
+        if (count := chained(rank, i, j)) > best_chained:
+            best, best_chained = rank, count
     enough = ODOMETRY_COVERAGE * max(n - 1, 1)
-    if chained(best, i, j) >= enough:
+    if best_chained >= enough:
         return best
     a, b, step = path_steps(n, i, j)
     if np.count_nonzero(step) < enough:  # (a path order chains little more than its
         return best  # steps: an edge between one path's end and the next path's start)
-    rank = np.empty(n, np.int64)
-    rank[_walk(n, a[step], b[step])] = added
+    rank = _rank(_walk(n, a[step], b[step]))
     return rank if chained(rank, i, j) >= enough else best
+
+
+def _rank(order: IntArray) -> IntArray:
+    """Each node's position in ``order`` (the dense indices in sequence order)."""
+    rank = np.empty(order.size, np.int64)
+    rank[order] = np.arange(order.size)
+    return rank
 
 
 def path_order(n: int, i: IntArray, j: IntArray) -> IntArray:
