@@ -927,6 +927,21 @@ def test_cross_validation_stopped_early_keeps_the_verdict_of_all_folds(peaked: b
     assert np.allclose(verdict.rotations, full.rotations)
 
 
+@pytest.mark.parametrize("workers", [2, 4])
+def test_cross_validation_side_by_side_gives_the_verdict_of_one_after_the_other(
+        workers: int) -> None:
+    rng = np.random.default_rng(3)
+    i, j, R, truth = _noisy_graph(80, True, rng)
+    w = np.ones(i.size)
+    ls = gauss_newton.refine_least_squares(truth, i, j, R, w, iterations=30)
+    serial = choose_by_cross_validation(ls, i, j, R, w)
+    side = choose_by_cross_validation(ls, i, j, R, w, workers=workers)
+    assert 3 <= serial.folds_run < 10  # stopped early: the batches must cut back to it
+    assert side.folds_run == serial.folds_run and side.estimator == serial.estimator
+    assert side.held_out_change == serial.held_out_change
+    assert np.array_equal(side.rotations, serial.rotations)
+
+
 def test_cross_validation_gives_no_verdict_where_a_fold_splits_the_graph() -> None:
     rng = np.random.default_rng(1)
     n = 30

@@ -439,7 +439,9 @@ class RotationAverager:
             verdict = choose_by_cross_validation(final, ii, jj, R[inlier], ww,
                                                  seed=opt.runtime.seed,
                                                  tree=chain_tree(n, ii, jj, ww),
-                                                 l1_from_fold=NOISE_AXES.get() == 1)
+                                                 l1_from_fold=NOISE_AXES.get() == 1,
+                                                 workers=verify_workers(
+                                                     i.size, opt.runtime.threads))
             stands = verdict.robust_given and not verdict.replaced
             self._say("cross-validation: no verdict (the inliers do not join every node)"
                       if np.isnan(verdict.held_out_change)

@@ -1,8 +1,9 @@
 """How many threads the solver's CPU work takes, and independent pieces of it run on them.
 
-The verification's pieces (GNC re-solves from several starts) are numpy and SciPy work
-whose sparse products, factorizations and einsums release the interpreter lock, so two
-run on two cores at once; their results are the same as one after the other, bit for bit.
+The verification's pieces (GNC re-solves from several starts, the cross-validation's
+folds) are numpy and SciPy work whose sparse products, factorizations and einsums release
+the interpreter lock, so two run on two cores at once; their results are the same as one
+after the other, bit for bit.
 """
 
 from __future__ import annotations
@@ -31,11 +32,15 @@ two threads contend for the interpreter lock instead (chain/300/rand20: 40 -> 52
 solve, smallGrid3D grouped 141 -> 156 ms); from parking-garage's 6,275 edges on they gain
 or break even (in process, median of 5, 2026-12-03: torus3D rand10 1.84 -> 1.76 s,
 sfm/dense1000/out30 2.22 -> 2.14 s, Ellis Island 2.64 -> 2.48 s, parking-garage noise5 +
-rand5 2.64 -> 2.57 s; sphere2500 rand5, 4,949 edges, 0.555 -> 0.561 s)."""
+rand5 2.64 -> 2.57 s; sphere2500 rand5, 4,949 edges, 0.555 -> 0.561 s). The
+cross-validation's folds (:func:`~rotavg_ros.core.robust.l1_choice.choose_by_cross_validation`)
+run two at a time from the same size on (all ten folds, 2026-12-05: smallGrid3D's 297 edges
+1.99x the time on two threads, a 1,035-edge chain 1.43x, sphere2500's 4,827 0.83x,
+parking-garage's 6,275 0.82x, torus3D's 9,048 0.71x)."""
 
 
 def verify_workers(num_edges: int, threads: int | None) -> int:
-    """Threads for the verification's independent re-solves: ``threads``
+    """Threads for the verification's independent re-solves and folds: ``threads``
     (``RuntimeOptions.threads``), or one per CPU when it is None; one below
     :data:`PARALLEL_MIN_EDGES` edges."""
     if num_edges < PARALLEL_MIN_EDGES:

@@ -10,9 +10,10 @@ as peaked). Cross-validation does: fit both without one fold of the edges at a t
 compare the held-out edges' squared residual angles. A held-out residual is the edge's
 noise plus the estimate's own error there, independent of each other, so the estimator
 with the lower sum is the more accurate one whatever the noise; the noise itself cancels
-in the paired difference. The folds run one after the other and stop early once the
-per-fold differences already say which estimator wins beyond doubt (a one-sided t-test at
-:data:`EARLY_STOP_QUANTILES`); else the sign of their sum over all folds decides.
+in the paired difference. The folds run one after the other (on large graphs two at a
+time, with the same verdict) and stop early once the per-fold differences already say
+which estimator wins beyond doubt (a one-sided t-test at :data:`EARLY_STOP_QUANTILES`);
+else the sign of their sum over all folds decides.
 
 The L1 fit minimizes ``sum_e sqrt(w_e) |e_e|``: each residual in units of its own noise
 scale ``1 / sqrt(w_e)``, as the verification's costs count it (with information weights
@@ -48,6 +49,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     refine_least_squares,
     residual_angles,
 )
+from rotavg_ros.core.threads import map_in_threads
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 FOLDS = 10
@@ -172,7 +174,7 @@ def alternative_fit(estimator: str, rot: FloatArray, i: IntArray, j: IntArray,
 def choose_by_cross_validation(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     folds: int = FOLDS, seed: int = 0, tree: BoolArray | None = None,
-    l1_from_fold: bool = False,
+    l1_from_fold: bool = False, workers: int = 1,
 ) -> EstimatorVerdict:
     """The solution ``rot``, the least-squares optimum or the alternative's fit of the
     given edges, by ``folds``-fold cross-validation of least squares against the
@@ -188,7 +190,9 @@ def choose_by_cross_validation(
     fold's fit and the alternative is Huber's estimator, else L1. No verdict (``rot``
     stands, ``held_out_change`` NaN) where the folds split the graph and no ``tree`` is
     given. ``l1_from_fold``: each fold's L1 fit starts from the fold's own least squares
-    (:func:`held_out_difference`)."""
+    (:func:`held_out_difference`). ``workers``: folds run side by side on that many threads
+    (:func:`~rotavg_ros.core.threads.map_in_threads`), with the same verdict as one after
+    the other."""
     ls = refine_least_squares(rot, i, j, R, w, iterations=20)
     r = residual_angles(ls, i, j, R)
     median = float(np.median(np.sqrt(w) * r))
@@ -208,11 +212,20 @@ def choose_by_cross_validation(
         split = splits()  # (only where the tree does not span the graph)
     if not median > 0 or split:
         return EstimatorVerdict(rot, LEAST_SQUARES, float("nan"))
+    def fold(k: int) -> float:
+        return held_out_difference(ls, i, j, R, w, median, label == k, alternative,
+                                   l1_from_fold)
+
+    # The folds run ``workers`` at a time; the verdict is the one the folds one after the
+    # other give: the differences up to the first count that decides early.
     differences: list[float] = []
-    for k in range(folds):
-        differences.append(held_out_difference(ls, i, j, R, w, median, label == k,
-                                               alternative, l1_from_fold))
-        if decided_early(differences):
+    batch = max(1, workers)
+    while len(differences) < folds:
+        ks = range(len(differences), min(folds, len(differences) + batch))
+        differences.extend(map_in_threads(fold, ks, batch))
+        decided = next((k for k in ks if decided_early(differences[:k + 1])), None)
+        if decided is not None:
+            del differences[decided + 1:]
             break
     change = sum(differences) * folds / len(differences) / max(in_sample, 1e-300)
     run = len(differences)
