@@ -309,6 +309,26 @@ class VerifyOptions:
     of the 12 folded-noise cases (medians 3.7-13% lower but on one case, 6.7% higher), least
     squares on the real graph and under tangent noise (docs/benchmarks.md, "An L1
     refinement?")."""
+    refit_where_folds_replace: bool = field(default=False,
+                                            metadata=_flat("refit_where_folds_replace"))
+    """Sparse mode, where ``l1_by_cross_validation`` runs with a spanning tree in every fold
+    (pose graphs whose odometry runs are bridges): its verdict puts least squares' optimum
+    or Huber's fit of the inliers in place of any robust fit, so the DMF refits
+    (``refit_readmitted``, the refit on the re-solve's inliers) are skipped there and least
+    squares of the inliers takes their place (off, the default). On: they run, as until
+    2026-12-05 (heteroscedastic parking-garage: 11.7 of a 17 s solve, for a fit that was
+    then replaced; docs/benchmarks.md, "Refits the folds replace")."""
+    dmf_where_folds_replace: bool = field(default=True,
+                                          metadata=_flat("dmf_where_folds_replace"))
+    """Sparse mode, robust first: fit the DMF on the re-solve's inliers even where the
+    cross-validation will keep a spanning tree in its folds (on, the default). Off: the
+    re-solve is kept there without a DMF fit, whose only say left is which inliers the
+    choice keeps. Off, on 175 solves (record folded seeds 0 and 5, tangent 0; stress
+    folded 73, tangent 74; 2026-12-05): 165 the same to 0.1%, heteroscedastic noise 0.1-2.5%
+    higher on all four such graphs, five others lower (weighted torus3D 16%, where the
+    cross-validation's verdict changed), pose-graph solves up to 3x faster (heteroscedastic
+    torus3D 13.3 -> 4.3 s). A regime made worse: on stays (docs/benchmarks.md, "Refits the
+    folds replace")."""
     refit_readmitted: bool = field(default=True, metadata=_flat("refit_readmitted"))
     """Dense mode: where the DMF solution is kept but more than a third of the edges the
     verification calls inliers (``solver.DENSE_UNFITTED_SHARE``) were not in its fit (the

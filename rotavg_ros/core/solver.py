@@ -35,7 +35,12 @@ from rotavg_ros.core.node_sequence import node_sequence
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.class_noise import class_noise
-from rotavg_ros.core.robust.l1_choice import LEAST_SQUARES, choose_by_cross_validation
+from rotavg_ros.core.robust.gauss_newton import refine_least_squares
+from rotavg_ros.core.robust.l1_choice import (
+    LEAST_SQUARES,
+    choose_by_cross_validation,
+    fold_plan,
+)
 from rotavg_ros.core.robust.noise import NOISE_AXES, noise_axes, redundancy
 from rotavg_ros.core.robust.verify import (
     RobustSolve,
@@ -334,6 +339,9 @@ class RotationAverager:
                                         odometry)
             if robust is not None and connects_all(n, i, j, robust.inlier):
                 resolve_why = self._least_squares_answers(n, robust)
+                if (not resolve_why and not opt.verify.dmf_where_folds_replace
+                        and self._folds_replace(n, i, j, w, robust.inlier)):
+                    resolve_why = "the cross-validation's fit replaces it"
                 resolve_only = bool(resolve_why)
                 if not resolve_only:
                     from_resolve = self._refit_from_resolve(robust.gaussian)
@@ -395,7 +403,16 @@ class RotationAverager:
         unfitted = int(np.count_nonzero(inlier & ~dmf_kept))  # judged by, not fitted to
         readmitted = bool(opt.verify.refit_readmitted
                           and unfitted > READMITTED_SHARE * np.count_nonzero(dmf_kept))
-        if out.chosen == "robust":
+        # The cross-validation (below) that keeps a spanning tree in its folds puts least
+        # squares' optimum or Huber's fit of the inliers in place of the kept solution
+        # either way: no DMF refit for it to replace, least squares in its place.
+        ii, jj, ww = i[inlier], j[inlier], w[inlier]
+        tree = self._cross_validation_tree(n, i, j, w, inlier) if sparse else None
+        replaced_by_fold_fit = (tree is not None and not opt.verify.refit_where_folds_replace
+                                and _folds_keep_tree(n, ii, jj, opt.runtime.seed, tree))
+        if replaced_by_fold_fit:
+            final = refine_least_squares(out.rotations, ii, jj, R[inlier], ww, iterations=20)
+        elif out.chosen == "robust":
             if (inlier_fit is None and not resolve_only
                     and not self._least_squares_stands(out, kept)
                     and redundancy(n, out.inlier) >= chain_like):
@@ -431,14 +448,11 @@ class RotationAverager:
             # them, briefly, from where it stands.
             final = self._refit_dmf(n, i, j, R, w, inlier, out.rotations, out.cap,
                                     warm=True, unfiltered=True)
-        refitted = final is not out.rotations
+        refitted = final is not out.rotations and not replaced_by_fold_fit
         estimator = ""
-        if (sparse and opt.verify.l1_by_cross_validation and n <= opt.verify.l1_max_nodes
-                and redundancy(n, inlier) >= chain_like):
-            ii, jj, ww = i[inlier], j[inlier], w[inlier]
+        if tree is not None:
             verdict = choose_by_cross_validation(final, ii, jj, R[inlier], ww,
-                                                 seed=opt.runtime.seed,
-                                                 tree=chain_tree(n, ii, jj, ww),
+                                                 seed=opt.runtime.seed, tree=tree,
                                                  l1_from_fold=NOISE_AXES.get() == 1,
                                                  workers=verify_workers(
                                                      i.size, opt.runtime.threads))
@@ -455,7 +469,8 @@ class RotationAverager:
                 final = verdict.rotations
                 estimator = ("ls" if verdict.estimator == LEAST_SQUARES
                              else verdict.estimator)
-        if out.chosen == "robust" or refitted or estimator or out.relocalized:
+        if (out.chosen == "robust" or refitted or estimator or out.relocalized
+                or replaced_by_fold_fit):
             # (the anchor may have moved)
             final = project_to_so3(np.einsum("nab,cb->nac", final, final[0]))  # node 0 = I
             final[0] = np.eye(3)
@@ -563,6 +578,25 @@ class RotationAverager:
             return "its residuals look Gaussian"
         spare = redundancy(n, robust.inlier)
         return f"redundancy {spare:.2f}" if spare < self._least_squares_below() else ""
+
+    def _cross_validation_tree(self, n: int, i: IntArray, j: IntArray, w: FloatArray,
+                               inlier: BoolArray) -> BoolArray | None:
+        """Sparse mode: the spanning tree of the ``inlier`` edges that the cross-validation
+        (``VerifyOptions.l1_by_cross_validation``) keeps where its folds would split them,
+        or None where it does not run."""
+        opt = self.options.verify
+        if not (opt.l1_by_cross_validation and n <= opt.l1_max_nodes
+                and redundancy(n, inlier) >= self._least_squares_below()):
+            return None
+        return chain_tree(n, i[inlier], j[inlier], w[inlier])
+
+    def _folds_replace(self, n: int, i: IntArray, j: IntArray, w: FloatArray,
+                       inlier: BoolArray) -> bool:
+        """Whether the cross-validation of the ``inlier`` edges keeps a spanning tree in
+        its folds and reaches a verdict: its fit then replaces any robust fit."""
+        tree = self._cross_validation_tree(n, i, j, w, inlier)
+        return tree is not None and _folds_keep_tree(n, i[inlier], j[inlier],
+                                                     self.options.runtime.seed, tree)
 
     def _least_squares_stands(self, out: VerifyOutcome, filtered: BoolArray) -> bool:
         """Fit first, then verify: whether the kept re-solve stands without the DMF refit on
@@ -922,6 +956,13 @@ def average_rotations(
                          time.perf_counter() - t0, iterations, filter_kept, noise,
                          verification, untested, relocalized, trusted, pruned, runs_left_out,
                          distrusted, odometry_weight)
+
+
+def _folds_keep_tree(n: int, i: IntArray, j: IntArray, seed: int, tree: BoolArray) -> bool:
+    """Whether the cross-validation of these inlier edges keeps the spanning ``tree`` in
+    every fold and reaches a verdict (:func:`~.robust.l1_choice.fold_plan`)."""
+    plan = fold_plan(n, i, j, seed=seed, tree=tree)
+    return plan.tree_kept and not plan.split
 
 
 def _anchored(rotations: FloatArray, anchor: int) -> FloatArray:

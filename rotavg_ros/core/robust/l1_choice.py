@@ -198,20 +198,13 @@ def choose_by_cross_validation(
     median = float(np.median(np.sqrt(w) * r))
     in_sample = float(np.sum(w * r ** 2))
     given = float(np.sum(w * residual_angles(rot, i, j, R) ** 2))
-    n = rot.shape[0]
-    label = np.random.default_rng(seed).integers(0, folds, i.size)
-
-    def splits() -> bool:
-        return not all(_connected(n, i[label != k], j[label != k]) for k in range(folds))
-
-    split = median > 0 and splits()
-    alternative, tree_kept = L1, False
-    if split and tree is not None:
-        label[tree] = -1  # in every fold's fit, never held out
-        alternative, tree_kept = HUBER, True
-        split = splits()  # (only where the tree does not span the graph)
-    if not median > 0 or split:
+    if not median > 0:
         return EstimatorVerdict(rot, LEAST_SQUARES, float("nan"))
+    plan = fold_plan(rot.shape[0], i, j, folds, seed, tree)
+    if plan.split:
+        return EstimatorVerdict(rot, LEAST_SQUARES, float("nan"))
+    label, tree_kept = plan.label, plan.tree_kept
+    alternative = HUBER if tree_kept else L1
     def fold(k: int) -> float:
         return held_out_difference(ls, i, j, R, w, median, label == k, alternative,
                                    l1_from_fold)
@@ -239,6 +232,39 @@ def choose_by_cross_validation(
     return EstimatorVerdict(alternative_fit(alternative, ls, i, j, R, w, median),
                             alternative, change, run, tree_kept, replaced=True,
                             robust_given=robust)
+
+
+@dataclass(frozen=True)
+class FoldPlan:
+    """How :func:`choose_by_cross_validation` splits the edges into folds."""
+
+    label: IntArray
+    """Each edge's fold (-1: a tree edge, in every fold's fit)."""
+    tree_kept: bool
+    """The folds keep a spanning tree in every fit: the alternative is Huber's estimator,
+    and least squares' optimum or Huber's fit replaces any given solution that is no
+    least squares."""
+    split: bool
+    """Some fold's fit splits the graph even so: no verdict."""
+
+
+def fold_plan(num_nodes: int, i: IntArray, j: IntArray, folds: int = FOLDS, seed: int = 0,
+              tree: BoolArray | None = None) -> FoldPlan:
+    """The folds of :func:`choose_by_cross_validation`: random, each edge in one; where
+    leaving one out would split the graph (beyond nodes left without an edge), the ``tree``
+    edges stay in every fold's fit."""
+    label = np.random.default_rng(seed).integers(0, folds, i.size)
+
+    def splits() -> bool:
+        return not all(_connected(num_nodes, i[label != k], j[label != k])
+                       for k in range(folds))
+
+    if not splits():
+        return FoldPlan(label, False, False)
+    if tree is None:
+        return FoldPlan(label, False, True)
+    label[tree] = -1  # in every fold's fit, never held out
+    return FoldPlan(label, True, splits())  # (split only where the tree does not span)
 
 
 def held_out_difference(ls: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
