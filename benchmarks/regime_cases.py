@@ -400,6 +400,38 @@ def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float 
                       max(noise, 1.0))
 
 
+def lattice_case(name: str, side: int, *, noise_deg: float = 1.0,
+                 random_false: float = 0.0, seed: int = 0,
+                 noise_model: str = "folded") -> RegimeCase:
+    """A pose graph on a ``side``^3 lattice, grid3D's topology (SE-Sync's grid3D: 20^3
+    poses, 22,236 edges; smallGrid3D: 5^3): ids along a snake through the lattice (the
+    odometry, consecutive ids), every other lattice neighbour a loop closure, a fraction
+    ``random_false`` of the closures false. The rotations turn about 20 deg a step
+    (:func:`chain_trajectory`). What this tests: a graph with thousands of nodes, six
+    edges a node and little else than loops, whose sparse factors fill in heavily."""
+    rng = rng_for(name, seed)
+    cells = [(x if (y + side * z) % 2 == 0 else side - 1 - x,
+              y if z % 2 == 0 else side - 1 - y, z)
+             for z in range(side) for y in range(side) for x in range(side)]
+    index = {c: k for k, c in enumerate(cells)}
+    pairs = sorted({(min(k, index[c2]), max(k, index[c2])) for c, k in index.items()
+                    for c2 in ((c[0] + 1, c[1], c[2]), (c[0], c[1] + 1, c[2]),
+                               (c[0], c[1], c[2] + 1)) if c2 in index})
+    i = np.asarray([p[0] for p in pairs], np.int64)
+    j = np.asarray([p[1] for p in pairs], np.int64)
+    n = len(cells)
+    gt = chain_trajectory(n, rng, step_deg=20.0)
+    truth = relative(gt, i, j)
+    R = perturb(truth, noise_deg, rng, noise_model)
+    inlier = replace_with_false(R, truth, np.flatnonzero(np.abs(i - j) != 1), random_false,
+                                rng)
+    desc = f"{side}^3 lattice, noise {noise_deg:g} deg"
+    if random_false:
+        desc += f", {random_false:.0%} of loop closures false"
+    return RegimeCase(name, "slam", n, i, j, R, gt, None, inlier, noise_deg, desc,
+                      max(noise_deg, 1.0))
+
+
 # ----------------------------------------------------------------------------- planar
 
 

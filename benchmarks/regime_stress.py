@@ -1,6 +1,6 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Fifty-eight cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+Fifty-nine cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
 with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
@@ -25,7 +25,9 @@ chains, a revisited route and three SLAM graphs
 closures that are the identity rotation, as a front end reports a failed match, on a chain
 and on parking-garage (:func:`~benchmarks.regime_cases.identity_false_case`), torus3D with
 half its edges given the other way round (:func:`~benchmarks.regime_cases.reversed_case`),
-and sphere2500 at 0.1 deg of noise with 10% false closures. They look
+and sphere2500 at 0.1 deg of noise with 10% false closures; and a 16^3 lattice pose
+graph with 10% false closures, grid3D's topology at 4,096 poses, whose sparse factors fill
+in heavily (:func:`~benchmarks.regime_cases.lattice_case`). They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
 ``paper`` profile (ours, the oracle, every installed peer) as the suite does
@@ -59,6 +61,7 @@ from benchmarks.regime_cases import (
     dense_case,
     heteroscedastic_case,
     identity_false_case,
+    lattice_case,
     near_false_case,
     pieces_case,
     planar_case,
@@ -231,6 +234,8 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                 slam("slam/torus3D/rand10", "torus3D", random_false=0.10)),
         slam("stress/sphere2500/noise0.1+rand10", "sphere2500", noise_deg=0.1,
              random_false=0.10),
+        lambda: lattice_case("stress/lattice/16/rand10", 16, random_false=0.10, seed=seed,
+                             noise_model=model),
     ]
 
 

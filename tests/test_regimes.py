@@ -158,6 +158,21 @@ def test_chain_has_no_triangles_and_odometry() -> None:
     assert len(pairs) == case.num_edges
 
 
+def test_lattice_case_is_grid3ds_topology() -> None:
+    """The lattice's snake is the odometry (every step one lattice edge), every other
+    lattice neighbour a closure, the share of false closures as asked, no triangle."""
+    case = rc.lattice_case("test/lattice", 5, random_false=0.2)
+    assert case.num_nodes == 125 and case.num_edges == 3 * 5 * 5 * 4  # smallGrid3D's 300
+    assert case.odometry.sum() == case.num_nodes - 1 and case.has_odometry
+    assert rc.triangle_count(case.num_nodes, case.i, case.j) == 0
+    assert case.inlier is not None and case.inlier[case.odometry].all()
+    closures = ~case.odometry
+    assert np.count_nonzero(~case.inlier) == round(0.2 * closures.sum())
+    err = np.degrees(rotation_angle(case.R @ np.swapaxes(rc.relative(
+        case.gt, case.i, case.j), 1, 2)))
+    assert err[case.inlier].max() < 6.0 and err[~case.inlier].min() >= rc.MIN_FALSE_DEG
+
+
 def test_ours_runs_and_is_scored() -> None:
     case = _tiny_dense()
     # spawn: this test process may already run torch's thread pools, which a fork inherits

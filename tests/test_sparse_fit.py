@@ -173,6 +173,75 @@ def test_chordal_start_one_factorization_matches_eliminating_each_anchor() -> No
     assert len(others) == 2
 
 
+def _lattice(side: int, seed: int) -> tuple[np.ndarray, ...]:
+    """A ``side``^3 lattice pose graph (grid3D's topology), ids along a snake through it,
+    1 deg of noise per axis: its factors fill in heavily."""
+    rng = np.random.default_rng(seed)
+    cells = [(x if (y + side * z) % 2 == 0 else side - 1 - x,
+              y if z % 2 == 0 else side - 1 - y, z)
+             for z in range(side) for y in range(side) for x in range(side)]
+    index = {c: k for k, c in enumerate(cells)}
+    pairs = sorted({tuple(sorted((k, index[n]))) for c, k in index.items()
+                    for n in ((c[0] + 1, c[1], c[2]), (c[0], c[1] + 1, c[2]),
+                              (c[0], c[1], c[2] + 1)) if n in index})
+    i, j = (np.array(p) for p in zip(*pairs, strict=True))
+    truth = random_rotations(len(cells), rng)
+    R = np.einsum("eab,ecb->eac", truth[i], truth[j])
+    return i, j, exp_map(rng.normal(size=(i.size, 3)) * math.radians(1.0)) @ R, truth
+
+
+def test_chordal_start_takes_supernodes_where_the_factor_fills_in_heavily() -> None:
+    """A 3D lattice's factor fills in past SUPERNODE_MIN_FILL entries per node, a long
+    chain's does not; with or without the supernode settings the relaxation is the same."""
+    i, j, R, truth = _lattice(16, 3)
+    n, w = truth.shape[0], np.ones(i.size)
+    deg = np.bincount(i, w, n) + np.bincount(j, w, n)
+    assert n >= chordal_init.SUPERNODE_MIN_NODES
+    assert chordal_init.fills_heavily(n, i, j, w, deg, 0, 1.0)
+    ci, cj, cR, _ = _loop_chain(3000, 4)
+    cw = np.ones(ci.size)
+    cdeg = np.bincount(ci, cw, 3000) + np.bincount(cj, cw, 3000)
+    assert not chordal_init.fills_heavily(3000, ci, cj, cw, cdeg, 0, 1.0)
+    assert not chordal_init.fills_heavily(n // 4, i[:10], j[:10], w[:10], deg, 0, 1.0)
+
+    si, sj, sR, struth = _lattice(6, 5)  # small: compare both settings on it
+    sw = np.ones(si.size)
+    with mock.patch.object(chordal_init, "SUPERNODE_MIN_NODES", 0):
+        with mock.patch.object(chordal_init, "SUPERNODE_MIN_FILL", 0.0):
+            heavy = chordal_rotations(struth.shape[0], si, sj, sR, sw)
+        with mock.patch.object(chordal_init, "SUPERNODE_MIN_FILL", math.inf):
+            light = chordal_rotations(struth.shape[0], si, sj, sR, sw)
+    assert np.abs(heavy - light).max() < 1e-9
+    assert np.median(np.degrees(geodesic_distance(heavy, np.einsum(
+        "nab,cb->nac", struth, struth[0])))) < 3.0  # (node 0's own error in every node)
+
+
+def test_reused_relaxations_solve_each_input_once() -> None:
+    """Within reused_relaxations the same input is relaxed once (the same result, a copy
+    each time); another input, or a call outside the block, is solved."""
+    i, j, R, truth = _loop_chain(80, 6)
+    n, w = truth.shape[0], np.ones(i.size)
+    solved = []
+    real = chordal_init._chordal_rotations
+
+    def counting(*args: object) -> np.ndarray:
+        solved.append(1)
+        return real(*args)  # type: ignore[arg-type]
+
+    with mock.patch.object(chordal_init, "_chordal_rotations", counting):
+        plain = chordal_rotations(n, i, j, R, w)
+        with chordal_init.reused_relaxations():
+            first = chordal_rotations(n, i, j, R, w)
+            first[:] = 0.0  # the caller's copy
+            with chordal_init.reused_relaxations():  # nested: the outer block's results
+                again = chordal_rotations(n, i.copy(), j.copy(), R.copy(), w.copy())
+            other = chordal_rotations(n, i, j, R, 2.0 * w)
+        after = chordal_rotations(n, i, j, R, w)
+    assert len(solved) == 4  # plain, first, other, after
+    assert np.array_equal(again, plain) and np.array_equal(after, plain)
+    assert np.abs(other - plain).max() < 1e-9  # (scaled weights: the same relaxation)
+
+
 def _planar_loop_chain(n: int, seed: int, noise_deg: float
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``_loop_chain``'s edges on a planar robot: every rotation about z, heading noise

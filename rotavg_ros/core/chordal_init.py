@@ -27,11 +27,26 @@ result. One sparse factorization serves every anchor: the block Laplacian with t
 pinned softly, ``M = L + pin E_c E_c^T``, and a 6x6 system per anchor
 (:func:`_anchored_solution`). That halves the relaxation's time against one factorization
 per anchor (torus3D with 10% false closures: 254 -> 118 ms, measured side by side).
+
+Where the factor fills in heavily (a 3D lattice: grid3D's 20^3 poses, 22,800 edges), SuperLU's
+own supernode settings factor it twice as fast as the settings that suit pose graphs and
+chains (:mod:`~rotavg_ros.core.sparse_factor`); the fill of the scalar Laplacian's factor
+tells which (:func:`fills_heavily`). A solve relaxes the same edges more than once (the
+robust re-solve's inliers, then the DMF fit's warm start on them): within
+:func:`reused_relaxations` a relaxation of edges already relaxed is not solved again.
 """
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+from typing import Any
+
 import numpy as np
+from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order
 
@@ -42,6 +57,66 @@ from rotavg_ros.core.types import FloatArray, IntArray
 ANCHOR_FRACTIONS = (0.5, 0.25, 0.75)
 """Anchors of the relaxation, as fractions of the way along the double sweep's path
 (:func:`anchor_candidates`; 0.5 is :func:`central_node`)."""
+
+
+SUPERNODE_MIN_NODES = 2000
+"""Nodes from which :func:`fills_heavily` factors the scalar Laplacian to find out (a
+tenth of the relaxation's own factorization time); below, the factor never fills in
+enough for SuperLU's supernodes to pay."""
+SUPERNODE_MIN_FILL = 120.0
+"""Entries per node of the scalar Laplacian's factor (L and U, minimum-degree order) from
+which the relaxation's block matrix is factored with SuperLU's supernode settings. Measured
+on 3D lattices with a snake trajectory (scratch, 2026-12-05): 74 per node, 2.9x slower
+with them; 122 and 145, 1.1x faster; 181, 1.4x; 221 (20^3 nodes), 2.0x. The SE-Sync pose
+graphs and the regime benchmark's chains have 8-35."""
+RELAXATIONS_KEPT = 4
+"""Relaxations :func:`reused_relaxations` keeps (the latest)."""
+RELAXATIONS: ContextVar[dict[bytes, FloatArray] | None] = ContextVar(
+    "RELAXATIONS", default=None)
+"""The current solve's relaxations by a digest of their input (:func:`reused_relaxations`)."""
+_RELAXATIONS_LOCK = threading.Lock()
+
+
+@contextmanager
+def reused_relaxations() -> Iterator[None]:
+    """Within this block, :func:`chordal_rotations` of an input it has already relaxed
+    returns that result again (a copy) instead of solving it anew: the same arrays give the
+    same rotations, bit for bit. Nested blocks share the outermost block's results."""
+    if RELAXATIONS.get() is not None:
+        yield
+        return
+    token = RELAXATIONS.set({})
+    try:
+        yield
+    finally:
+        RELAXATIONS.reset(token)
+
+
+def _digest(num_nodes: int, *arrays: FloatArray | IntArray) -> bytes:
+    h = hashlib.blake2b(np.int64(num_nodes).tobytes(), digest_size=20)
+    for array in arrays:
+        flat = np.ascontiguousarray(array)
+        h.update(f"{flat.dtype.str}{flat.shape}".encode())
+        h.update(flat.tobytes())
+    return h.digest()
+
+
+def fills_heavily(num_nodes: int, i: IntArray, j: IntArray, w: FloatArray,
+                  deg: NDArray[Any], centre: int, pin: float) -> bool:
+    """Whether the factor of the graph's scalar Laplacian (weights ``w``, degrees ``deg``,
+    ``centre`` pinned by ``pin``) holds at least :data:`SUPERNODE_MIN_FILL` entries per
+    node (from :data:`SUPERNODE_MIN_NODES` nodes on; fewer: False). The relaxation's block
+    matrix fills in as it does, nine times over."""
+    if num_nodes < SUPERNODE_MIN_NODES:
+        return False
+    diagonal = np.asarray(deg, np.float64).copy()
+    diagonal[centre] += pin
+    nodes = np.arange(num_nodes)
+    L = coo_matrix((np.concatenate([diagonal, -w, -w]),
+                    (np.concatenate([nodes, i, j]), np.concatenate([nodes, j, i]))),
+                   shape=(num_nodes, num_nodes)).tocsc()
+    lu = factor_spd(L)
+    return bool((lu.L.nnz + lu.U.nnz) / num_nodes >= SUPERNODE_MIN_FILL)
 
 
 def anchor_candidates(num_nodes: int, i: IntArray, j: IntArray) -> list[int]:
@@ -92,10 +167,30 @@ def chordal_rotations(
 
     The linear system is anchored at each of :func:`anchor_candidates` (the centre first),
     and the projected solution of the lowest chordal cost is kept (module docstring); the
-    gauge is moved to node 0 after the projection (``R_i <- R_i R_0^T``).
+    gauge is moved to node 0 after the projection (``R_i <- R_i R_0^T``). Within
+    :func:`reused_relaxations`, an input relaxed before returns that result again.
     """
     if num_nodes == 1:
         return np.eye(3)[None]
+    cache = RELAXATIONS.get()
+    if cache is None:
+        return _chordal_rotations(num_nodes, i, j, R, w)
+    key = _digest(num_nodes, i, j, R, w)
+    with _RELAXATIONS_LOCK:  # (the verification's threads share the solve's results)
+        known = cache.get(key)
+    if known is None:
+        known = _chordal_rotations(num_nodes, i, j, R, w)
+        with _RELAXATIONS_LOCK:
+            cache[key] = known
+            while len(cache) > RELAXATIONS_KEPT:
+                del cache[next(iter(cache))]  # the oldest
+    return known.copy()
+
+
+def _chordal_rotations(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
+) -> FloatArray:
+    """:func:`chordal_rotations` itself, solved."""
     n3 = 3 * num_nodes
     rows: list[IntArray] = []
     cols: list[IntArray] = []
@@ -122,7 +217,7 @@ def chordal_rotations(
     vals.append(np.full(3, pin))
     M = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                    shape=(n3, n3)).tocsc()
-    lu = factor_spd(M)
+    lu = factor_spd(M, supernodes=fills_heavily(num_nodes, i, j, w, deg, centre, pin))
     # M^-1 E_k for every anchor k (E_k: the anchor's three unit columns); the centre's first.
     E = np.zeros((n3, 3 * len(anchors)))
     for k, anchor in enumerate(anchors):

@@ -20,7 +20,7 @@ import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from rotavg_ros.core.chordal_init import chordal_rotations
+from rotavg_ros.core.chordal_init import chordal_rotations, reused_relaxations
 from rotavg_ros.core.dmf import (
     CandidateRace,
     DMFFit,
@@ -265,7 +265,8 @@ class RotationAverager:
                   >= self.options.verify.least_squares_below_redundancy)
         token = NOISE_AXES.set(1 if planar else 3)
         try:
-            return self._solve_component(n, i, j, R, w, initial, initial_depth)
+            with reused_relaxations():  # (the same edges relaxed twice: solved once)
+                return self._solve_component(n, i, j, R, w, initial, initial_depth)
         finally:
             NOISE_AXES.reset(token)
 

@@ -10,6 +10,10 @@ about 1.5x faster (parking-garage, sphere2500, torus3D), an odometry chain's 2.5
 chordal relaxation (which also builds the matrix) up to 1.3x (``python -m
 benchmarks.bench_sparse_factor``; docs/benchmarks.md, "SuperLU settings"). The factors
 hold the same entries (no pivoting), up to rounding.
+
+Where the factor fills in heavily (a 3D lattice's chordal relaxation: 600 entries per
+column), SuperLU's own supernode settings are the faster ones again (``supernodes``; see
+:func:`~rotavg_ros.core.chordal_init.chordal_rotations`).
 """
 
 from __future__ import annotations
@@ -25,12 +29,14 @@ PANEL_SIZE = 1
 """SuperLU's ``panel_size``: columns factored together."""
 
 
-def factor_spd(A: Any, ordered: bool = False) -> SuperLU:
+def factor_spd(A: Any, ordered: bool = False, supernodes: bool = False) -> SuperLU:
     """SuperLU factorization of the sparse symmetric positive definite ``A`` (CSC).
 
     ``ordered``: ``A`` is already in a fill-reducing order (kept as is); else SuperLU orders
-    it by minimum degree on ``A + A^T``.
+    it by minimum degree on ``A + A^T``. ``supernodes``: SuperLU's default supernode
+    settings instead of :data:`SUPERNODE_RELAX` and :data:`PANEL_SIZE` (for factors that
+    fill in heavily).
     """
+    settings = {} if supernodes else {"relax": SUPERNODE_RELAX, "panel_size": PANEL_SIZE}
     return splu(A, permc_spec="NATURAL" if ordered else "MMD_AT_PLUS_A",
-                diag_pivot_thresh=0.0, relax=SUPERNODE_RELAX, panel_size=PANEL_SIZE,
-                options={"SymmetricMode": True})
+                diag_pivot_thresh=0.0, options={"SymmetricMode": True}, **settings)
