@@ -695,6 +695,49 @@ def revisit_case(name: str, lap_nodes: int, laps: int, *, runs: int,
                           loop_noise_deg, rng, noise_model, desc)
 
 
+def grid_walk_case(name: str, num_nodes: int, side: int, *, closures: int,
+                   false_random: float = 0.0, odo_noise_deg: float = 1.0,
+                   loop_noise_deg: float = 2.0, seed: int = 0,
+                   noise_model: str = "folded") -> RegimeCase:
+    """A robot walking the streets of a ``side`` x ``side`` grid city, as the Manhattan
+    datasets (M3500: 3,500 poses, 5,453 edges) are drawn: one block a step, turning left or
+    right with probability 0.3, back where it meets the edge. ``closures`` true loop
+    closures join poses at the same corner at least 6 steps apart, drawn from every such
+    pair; random false closures are ``false_random`` of all the closures (ends at least 20
+    apart). Rotations from :func:`chain_trajectory` (wrap it in :func:`planar_case` for a
+    planar robot). What this tests: a pose graph whose closures come from revisits all
+    over it, at every range of ids, many short loops and a few long ones."""
+    rng = rng_for(name, seed)
+    pos = np.zeros((num_nodes, 2), np.int64)
+    step = np.array([1, 0])
+    for k in range(1, num_nodes):
+        if rng.random() < 0.3:
+            step = np.array([-step[1], step[0]]) * (1 if rng.random() < 0.5 else -1)
+        if not np.all((0 <= pos[k - 1] + step) & (pos[k - 1] + step < side)):
+            step = -step
+        pos[k] = pos[k - 1] + step
+    at: dict[int, list[int]] = {}
+    for k, cell in enumerate((pos[:, 0] * side + pos[:, 1]).tolist()):
+        at.setdefault(cell, []).append(k)
+    candidates = [(a, b) for ks in at.values() for x, a in enumerate(ks) for b in ks[x + 1:]
+                  if b - a > 5]
+    if len(candidates) < closures:
+        raise ValueError(f"only {len(candidates)} revisits to draw {closures} closures from")
+    pick = rng.choice(len(candidates), size=closures, replace=False)
+    true_pairs = sorted(candidates[int(p)] for p in pick)
+    used = set(true_pairs)
+    count = int(round(closures * false_random / max(1e-9, 1.0 - false_random)))
+    false_pairs = _random_pairs(num_nodes, count, rng,
+                                lambda a, b: b - a < 20 or (a, b) in used,
+                                lambda a, b: used.add((a, b)))
+    gt = chain_trajectory(num_nodes, rng)
+    desc = (f"grid walk of {num_nodes} poses on a {side} x {side} city, {closures} true "
+            f"closures at revisited corners, {len(false_pairs)} false")
+    case = _measured_case(name, gt, [(k, k + 1) for k in range(num_nodes - 1)], true_pairs,
+                          false_pairs, odo_noise_deg, loop_noise_deg, rng, noise_model, desc)
+    return replace(case, family="slam")
+
+
 # ----------------------------------------------------------------------- SfM / dense
 
 

@@ -1,6 +1,6 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Fifty-nine cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+Sixty cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
 with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
@@ -27,7 +27,10 @@ and on parking-garage (:func:`~benchmarks.regime_cases.identity_false_case`), to
 half its edges given the other way round (:func:`~benchmarks.regime_cases.reversed_case`),
 and sphere2500 at 0.1 deg of noise with 10% false closures; and a 16^3 lattice pose
 graph with 10% false closures, grid3D's topology at 4,096 poses, whose sparse factors fill
-in heavily (:func:`~benchmarks.regime_cases.lattice_case`). They look
+in heavily (:func:`~benchmarks.regime_cases.lattice_case`); and a planar robot walking a
+grid city, the Manhattan datasets' kind of graph (3,500 poses, closures at revisited
+corners, 20% false, 5 deg of heading noise; :func:`~benchmarks.regime_cases.grid_walk_case`).
+They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
 ``paper`` profile (ours, the oracle, every installed peer) as the suite does
@@ -59,6 +62,7 @@ from benchmarks.regime_cases import (
     broken_odometry_case,
     chain_case,
     dense_case,
+    grid_walk_case,
     heteroscedastic_case,
     identity_false_case,
     lattice_case,
@@ -180,6 +184,10 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                slam("slam/parking-garage/noise1", "parking-garage"), 5.0, 5.0),
         planar("stress/planar/torus3D/noise17",
                slam("slam/torus3D/noise1", "torus3D"), 17.0, 17.0),
+        planar("stress/planar/grid-walk/3500/noise5+rand20",
+               lambda: grid_walk_case("grid-walk/3500/rand20", 3500, 30, closures=1600,
+                                      false_random=0.20, seed=seed, noise_model=model),
+               5.0, 5.0),
         weighted("stress/weighted/smallGrid3D/rand10",
                  slam("slam/smallGrid3D/rand10", "smallGrid3D", random_false=0.10)),
         weighted("stress/weighted/parking-garage/rand10",

@@ -173,6 +173,24 @@ def test_lattice_case_is_grid3ds_topology() -> None:
     assert err[case.inlier].max() < 6.0 and err[~case.inlier].min() >= rc.MIN_FALSE_DEG
 
 
+def test_grid_walk_case_closes_loops_at_revisited_corners() -> None:
+    """The walk's true closures join poses at least 6 steps apart, the false ones extra
+    pairs at least 20 apart, their share as asked; a city too small for the closures asked
+    says so."""
+    case = rc.grid_walk_case("test/grid-walk", 400, 8, closures=60, false_random=0.25)
+    assert case.odometry.sum() == case.num_nodes - 1 and case.has_odometry
+    assert case.inlier is not None and case.family == "slam"
+    closures = ~case.odometry
+    assert np.count_nonzero(closures & case.inlier) == 60
+    assert np.count_nonzero(~case.inlier) == 20  # 25% of 80 closures
+    assert np.all(np.abs(case.i - case.j)[closures & case.inlier] > 5)
+    assert np.all(np.abs(case.i - case.j)[~case.inlier] >= 20)
+    pairs = set(zip(case.i.tolist(), case.j.tolist(), strict=True))
+    assert len(pairs) == case.num_edges
+    with pytest.raises(ValueError, match="revisits"):
+        rc.grid_walk_case("test/grid-walk", 30, 8, closures=500)
+
+
 def test_ours_runs_and_is_scored() -> None:
     case = _tiny_dense()
     # spawn: this test process may already run torch's thread pools, which a fork inherits
