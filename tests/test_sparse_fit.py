@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmarks.regime_cases import lattice_case
 from rotavg_ros.core import chordal_init
 from rotavg_ros.core.chordal_init import anchor_candidates, central_node, chordal_rotations
 from rotavg_ros.core.dmf.common import FitSpec
@@ -174,20 +175,10 @@ def test_chordal_start_one_factorization_matches_eliminating_each_anchor() -> No
 
 
 def _lattice(side: int, seed: int) -> tuple[np.ndarray, ...]:
-    """A ``side``^3 lattice pose graph (grid3D's topology), ids along a snake through it,
-    1 deg of noise per axis: its factors fill in heavily."""
-    rng = np.random.default_rng(seed)
-    cells = [(x if (y + side * z) % 2 == 0 else side - 1 - x,
-              y if z % 2 == 0 else side - 1 - y, z)
-             for z in range(side) for y in range(side) for x in range(side)]
-    index = {c: k for k, c in enumerate(cells)}
-    pairs = sorted({tuple(sorted((k, index[n]))) for c, k in index.items()
-                    for n in ((c[0] + 1, c[1], c[2]), (c[0], c[1] + 1, c[2]),
-                              (c[0], c[1], c[2] + 1)) if n in index})
-    i, j = (np.array(p) for p in zip(*pairs, strict=True))
-    truth = random_rotations(len(cells), rng)
-    R = np.einsum("eab,ecb->eac", truth[i], truth[j])
-    return i, j, exp_map(rng.normal(size=(i.size, 3)) * math.radians(1.0)) @ R, truth
+    """The regime benchmark's ``side``^3 lattice pose graph (grid3D's topology, 1 deg of
+    noise): ``(i, j, R, truth)``. Its factors fill in heavily."""
+    case = lattice_case(f"test/lattice/{side}", side, seed=seed)
+    return case.i, case.j, case.R, case.gt
 
 
 def test_chordal_start_takes_supernodes_where_the_factor_fills_in_heavily() -> None:
