@@ -28,6 +28,7 @@ from rotavg_ros.core.robust.gnc import gnc_tls
 from rotavg_ros.core.robust.l1_choice import (
     EARLY_STOP_QUANTILES,
     HUBER,
+    HUBER_K,
     L1,
     LEAST_SQUARES,
     choose_by_cross_validation,
@@ -860,6 +861,14 @@ def test_cross_validation_picks_l1_for_peaked_noise_and_least_squares_for_gaussi
     assert other.estimator == verdict.estimator
     if peaked:
         assert not other.replaced and other.rotations is off
+        # A pose graph's robust fit (least squares in the bulk): Huber's fit replaces it.
+        pose = choose_by_cross_validation(off, i, j, R, w, robust_l1_stands=False)
+        assert pose.estimator == L1 and pose.fitted == HUBER
+        assert pose.replaced and pose.robust_given
+        median = float(np.median(residual_angles(ls, i, j, R)))
+        huber = huber_fit(ls, i, j, R, w, HUBER_K * median)
+        assert np.allclose(_gauged(pose.rotations), _gauged(huber), atol=1e-5)
+        assert not np.allclose(_gauged(pose.rotations), _gauged(verdict.rotations), atol=1e-3)
     else:
         assert other.replaced and np.allclose(_gauged(other.rotations), _gauged(ls), atol=1e-6)
 
@@ -1043,6 +1052,26 @@ def test_no_dmf_refit_where_the_folds_fit_replaces_it(peaked: bool, seed: int) -
     assert error[False].median_deg == pytest.approx(error[True].median_deg, rel=1e-3)
     assert error[False].mean_deg == pytest.approx(error[True].mean_deg, rel=1e-3)
 
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_l1_over_a_robust_fit_only_on_graphs_with_odometry(on: bool) -> None:
+    """``l1_over_robust_with_odometry``: the solver lets the L1 verdict replace a robust
+    kept fit on a graph with odometry (consecutive ids chain it), and never on one
+    without (the same edges with the odometry rule off, as a view graph has none)."""
+    import rotavg_ros.core.solver as solver_module
+    i, j, R, truth = _noisy_graph(80, True, np.random.default_rng(0))
+    stands: dict[str, list[bool]] = {}
+    for rule in ("auto", "none"):
+        options = SolverOptions.for_profile("default", seed=0, odometry=rule,
+                                            l1_over_robust_with_odometry=on)
+        with mock.patch.object(solver_module, "choose_by_cross_validation",
+                               wraps=solver_module.choose_by_cross_validation) as cv:
+            average_rotations(truth.shape[0], i, j, R, np.ones(i.size), options)
+        stands[rule] = [call.kwargs["robust_l1_stands"] for call in cv.call_args_list]
+    assert stands["auto"] and stands["none"]  # the cross-validation ran both times
+    assert all(s == (not on) for s in stands["auto"])
+    assert all(stands["none"])
 
 def test_huber_fit_minimizes_the_huber_cost() -> None:
     """Huber's cost at its fit is below least squares' and no small move lowers it; with a

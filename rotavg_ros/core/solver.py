@@ -456,20 +456,26 @@ class RotationAverager:
                                                  seed=opt.runtime.seed, tree=tree,
                                                  l1_from_fold=NOISE_AXES.get() == 1,
                                                  workers=verify_workers(
-                                                     i.size, opt.runtime.threads))
-            stands = verdict.robust_given and not verdict.replaced
+                                                     i.size, opt.runtime.threads),
+                                                 robust_l1_stands=not (
+                                                     opt.verify.l1_over_robust_with_odometry
+                                                     and bool(odometry.any())))
+            robust_fate = ("; the kept robust fit stands"
+                           if verdict.robust_given and not verdict.replaced
+                           else "; Huber's fit replaces the robust fit"
+                           if verdict.replaced and verdict.fitted != verdict.estimator
+                           else "")
             self._say("cross-validation: no verdict (the inliers do not join every node)"
                       if np.isnan(verdict.held_out_change)
                       else f"cross-validation: {verdict.estimator}"
                       f" (held-out change {verdict.held_out_change:+.3f}, "
                       f"{verdict.folds_run} folds"
                       f"{', a spanning tree in every fold' if verdict.tree_kept else ''}"
-                      f"{'; the kept robust fit stands' if stands else ''})")
+                      f"{robust_fate})")
             if verdict.replaced:  # (else the kept solution stands as it is)
                 # The alternative's fit, or least squares' optimum in a robust fit's place.
                 final = verdict.rotations
-                estimator = ("ls" if verdict.estimator == LEAST_SQUARES
-                             else verdict.estimator)
+                estimator = "ls" if verdict.fitted == LEAST_SQUARES else verdict.fitted
         if (out.chosen == "robust" or refitted or estimator or out.relocalized
                 or replaced_by_fold_fit):
             # (the anchor may have moved)

@@ -128,6 +128,10 @@ class EstimatorVerdict:
     robust_given: bool = False
     """Whether the given solution was a robust fit, no least squares
     (:data:`LEAST_SQUARES_TOLERANCE`)."""
+    fitted: str = ""
+    """The estimator whose fit is ``rotations`` where ``replaced``: ``estimator``, but
+    :data:`HUBER` where L1 won over a pose graph's robust fit (``robust_l1_stands``
+    False); empty where nothing was replaced."""
 
 
 def l1_floor(r: FloatArray, w: FloatArray) -> float:
@@ -174,7 +178,7 @@ def alternative_fit(estimator: str, rot: FloatArray, i: IntArray, j: IntArray,
 def choose_by_cross_validation(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     folds: int = FOLDS, seed: int = 0, tree: BoolArray | None = None,
-    l1_from_fold: bool = False, workers: int = 1,
+    l1_from_fold: bool = False, workers: int = 1, robust_l1_stands: bool = True,
 ) -> EstimatorVerdict:
     """The solution ``rot``, the least-squares optimum or the alternative's fit of the
     given edges, by ``folds``-fold cross-validation of least squares against the
@@ -192,7 +196,10 @@ def choose_by_cross_validation(
     given. ``l1_from_fold``: each fold's L1 fit starts from the fold's own least squares
     (:func:`held_out_difference`). ``workers``: folds run side by side on that many threads
     (:func:`~rotavg_ros.core.threads.map_in_threads`), with the same verdict as one after
-    the other."""
+    the other. ``robust_l1_stands``: a robust ``rot`` stands where L1 wins (a view graph's
+    DMF fit, reweighted towards L1); False (a pose graph's, least squares in the bulk):
+    Huber's fit replaces it there, the estimator that averages the bulk as least squares
+    does and caps the tails (:data:`HUBER_K`), as where the folds keep a tree."""
     ls = refine_least_squares(rot, i, j, R, w, iterations=20)
     r = residual_angles(ls, i, j, R)
     median = float(np.median(np.sqrt(w) * r))
@@ -225,13 +232,18 @@ def choose_by_cross_validation(
     robust = given > (1.0 + LEAST_SQUARES_TOLERANCE) * in_sample
     if change >= 0.0:  # least squares: its optimum in a robust fit's place, else rot
         return EstimatorVerdict(ls if robust else rot, LEAST_SQUARES, change, run,
-                                tree_kept, replaced=robust, robust_given=robust)
-    if robust and alternative == L1:  # the folds keep no tree: a robust fit stands
-        return EstimatorVerdict(rot, alternative, change, run, tree_kept,
-                                replaced=False, robust_given=True)
+                                tree_kept, replaced=robust, robust_given=robust,
+                                fitted=LEAST_SQUARES if robust else "")
+    if robust and alternative == L1:
+        if robust_l1_stands:  # a view graph's robust fit stands
+            return EstimatorVerdict(rot, alternative, change, run, tree_kept,
+                                    replaced=False, robust_given=True)
+        return EstimatorVerdict(alternative_fit(HUBER, ls, i, j, R, w, median),
+                                alternative, change, run, tree_kept, replaced=True,
+                                robust_given=True, fitted=HUBER)
     return EstimatorVerdict(alternative_fit(alternative, ls, i, j, R, w, median),
                             alternative, change, run, tree_kept, replaced=True,
-                            robust_given=robust)
+                            robust_given=robust, fitted=alternative)
 
 
 @dataclass(frozen=True)
