@@ -108,9 +108,10 @@ HUBER = "huber"
 class EstimatorVerdict:
     """The cross-validation's answer: ``estimator`` is the estimator whose fit of all the
     edges predicts held-out edges better, :data:`LEAST_SQUARES`, :data:`L1` or
-    :data:`HUBER`; ``rotations`` is that fit where ``replaced``, else the given solution
-    (no verdict; least squares won over a least-squares-like given solution; or L1 won
-    over a given solution that is no least squares: that robust fit stands).
+    :data:`HUBER`; ``rotations`` is a fit where ``replaced`` (that estimator's, or the one
+    ``fitted`` names), else the given solution (no verdict; least squares won over a
+    least-squares-like given solution; or L1 won over a view graph's robust fit, which
+    stands).
     ``held_out_change`` is the held-out sum of weighted squared
     residuals of the alternative minus least squares, over least squares' in-sample sum
     (negative: the alternative predicts the held-out edges better), over the
