@@ -1035,12 +1035,16 @@ def test_no_dmf_refit_where_the_folds_fit_replaces_it(peaked: bool, seed: int) -
     """Where the cross-validation keeps a spanning tree in its folds, its verdict's fit
     (least squares' optimum or Huber's) takes the kept solution's place, so the DMF refit
     is skipped (``refit_where_folds_replace`` off): the same answer without the refit.
-    Measured: peaked 3.9537 deg median both ways (Huber), Gaussian 7.2954 (least squares)."""
+    Measured: peaked 3.9537 deg median both ways (Huber), Gaussian 7.2954 (least squares).
+    The odometry rule is off: with the chain trusted, the tight pass (which runs wherever
+    the loop closures are few) runs too, and on this graph no refit follows either way
+    (the same errors)."""
     i, j, R, truth = _chain_with_closures(peaked, seed)
     said: dict[bool, list[str]] = {True: [], False: []}
     error = {}
     for refit in (True, False):
-        options = SolverOptions.for_profile("default", seed=0, refit_where_folds_replace=refit)
+        options = SolverOptions.for_profile("default", seed=0, refit_where_folds_replace=refit,
+                                            odometry="none")
         options = dataclasses.replace(options, runtime=dataclasses.replace(
             options.runtime, progress=said[refit].append))
         out = average_rotations(truth.shape[0], i, j, R, np.ones(i.size), options)

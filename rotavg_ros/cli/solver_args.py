@@ -60,8 +60,8 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    "verification's re-solves side by side (default or 0: one per candidate, "
                    "candidates and re-solves in parallel up to the CPU count)")
     g.add_argument("--hidden-width", type=int, default=None,
-                   help="width of H's hidden factors (>= 3; default: 3N up to 300 nodes, "
-                   "64 above)")
+                   help="width of H's hidden factors (>= 3; default: min(3N, 64), with "
+                   "--profile paper 3N up to 300 nodes)")
     g.add_argument("--no-filter", action="store_true", help="ablation (a)")
     g.add_argument("--no-support-count", action="store_true", help="ablation (b)")
     g.add_argument("--no-explicit-constraint", action="store_true", help="ablation (c)")

@@ -53,6 +53,13 @@ RUN_QUANTILE) / runs`` per run; 16.3 sigma^2 for one run, 25.5 for parking-garag
 _COLUMNS = 256  # runs per block of Laplacian solves
 
 
+def independent_pieces(i: IntArray, j: IntArray, closures: BoolArray) -> int:
+    """How many independent pieces of evidence the ``closures`` edges are: each run
+    (:func:`closure_runs`) one, each closure in no run one."""
+    runs = closure_runs(i, j, closures)
+    return len(runs) + int(np.count_nonzero(closures)) - sum(r.size for r in runs)
+
+
 def closure_runs(i: IntArray, j: IntArray, closures: BoolArray) -> list[IntArray]:
     """Runs (edge indices) of the ``closures`` edges, at least two each (module docstring)."""
     idx = np.flatnonzero(closures)

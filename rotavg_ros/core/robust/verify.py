@@ -79,7 +79,7 @@ from rotavg_ros.core.robust.closure_consistency import (
     consistent_closures,
     loop_noise_scale,
 )
-from rotavg_ros.core.robust.closure_runs import suspect_runs
+from rotavg_ros.core.robust.closure_runs import independent_pieces, suspect_runs
 from rotavg_ros.core.robust.gauss_newton import (
     ITERATIVE_MIN_DEGREE,
     WELL_CONNECTED,
@@ -554,9 +554,15 @@ def robust_resolve(
     # pass always runs, pairwise test included: there each closure carries much of the
     # fit, and a few false ones can bend it until every residual is inside (a 100-keyframe
     # chain with 8 true and 2 false closures: no outlier, 7.1 deg per axis against the
-    # odometry's 1.4). Without odometry there is nothing to judge the closures by.
+    # odometry's 1.4), and wherever the loop closures are few (``PAIRWISE_ALWAYS_UP_TO``),
+    # where a group of false ones can lift the redundancy above the chain bound and still
+    # bend step 3's fit until it shows no outlier (a 50-keyframe chain with 8 true closures
+    # and a group of 7 false ones: redundancy 0.23, 11.1 deg mean error against the
+    # oracle's 1.8). Without odometry there is nothing to judge the closures by.
     chain_like = has_odometry and redundancy(num_nodes, inlier) < chain_below
-    if math.isfinite(noise.sigma) and has_odometry and (chain_like or not inlier.all()):
+    few_closures = np.count_nonzero(~odometry) <= PAIRWISE_ALWAYS_UP_TO
+    if math.isfinite(noise.sigma) and has_odometry and (chain_like or few_closures
+                                                        or not inlier.all()):
         step3_residuals = residual_angles(rot, i, j, R) * np.sqrt(w)
         tight = functools.partial(_tight_pass, num_nodes, i, j, R, w, step3=(
             rot, inlier, noise, t), tree=tree, rounds=rounds, max_threshold=max_threshold,
@@ -707,13 +713,19 @@ def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
     scales, the suspects capped in both) plus ``BREAK_PENALTY`` caps for each suspect it
     leaves out that is not among ``suspects.jumps`` are below the trusting pass's. Odometry
     is rarely wrong, and a group of consistent false closures can claim that a true step
-    is: cutting a step suspect only as a misfit must free several closures. A jump the
-    closures point at, or a rare one, needs only its own cap. Noise scales that are not
-    finite: no cut."""
+    is: cutting a step suspect only as a misfit must free several closures, and more than
+    one run of them (:func:`~.closure_runs.independent_pieces`): the closures of one run,
+    between the same two stretches, are one wrong match repeated keyframe after keyframe
+    (perceptual aliasing), one piece of evidence against the odometry. A jump the closures
+    point at, or a rare one, needs only its own cap. Noise scales that are not finite: no
+    cut."""
     if not (math.isfinite(trusting.noise.sigma) and math.isfinite(untrusting.noise.sigma)):
         return False
     c = GNC_SIGMAS * min(trusting.noise.sigma, untrusting.noise.sigma)
     cut = int(np.count_nonzero(suspects.edges & ~untrusting.inlier & ~suspects.jumps))
+    freed = untrusting.inlier & ~trusting.inlier & ~(trusted | suspects.edges)
+    if cut and independent_pieces(i, j, freed) <= 1:
+        return False
     return bool(truncated_squares(untrusting.rotations, i, j, R, w, c, trusted)
                 + BREAK_PENALTY * cut * c * c
                 < truncated_squares(trusting.rotations, i, j, R, w, c, trusted))
