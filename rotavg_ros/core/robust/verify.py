@@ -207,6 +207,12 @@ class VerifyOutcome:
     the kept solution leaves out."""
 
 
+def few_closures(trusted: BoolArray) -> bool:
+    """Whether the loop closures (the edges not ``trusted`` as odometry) are at most
+    ``PAIRWISE_ALWAYS_UP_TO``: the tight pass and its pairwise test then always run."""
+    return int(np.count_nonzero(~trusted)) <= PAIRWISE_ALWAYS_UP_TO
+
+
 def chain_tree(num_nodes: int, i: IntArray, j: IntArray, weight: FloatArray) -> BoolArray:
     """A spanning tree that takes consecutive-index edges (an odometry chain) first, then
     the heaviest others. Returns the tree mask over the edges."""
@@ -560,8 +566,7 @@ def robust_resolve(
     # and a group of 7 false ones: redundancy 0.23, 11.1 deg mean error against the
     # oracle's 1.8). Without odometry there is nothing to judge the closures by.
     chain_like = has_odometry and redundancy(num_nodes, inlier) < chain_below
-    few_closures = np.count_nonzero(~odometry) <= PAIRWISE_ALWAYS_UP_TO
-    if math.isfinite(noise.sigma) and has_odometry and (chain_like or few_closures
+    if math.isfinite(noise.sigma) and has_odometry and (chain_like or few_closures(odometry)
                                                         or not inlier.all()):
         step3_residuals = residual_angles(rot, i, j, R) * np.sqrt(w)
         tight = functools.partial(_tight_pass, num_nodes, i, j, R, w, step3=(
@@ -671,9 +676,8 @@ def _tight_pass(
         tight_from(*begins)
 
     from_every_start([])
-    few = int(np.count_nonzero(~known)) <= PAIRWISE_ALWAYS_UP_TO
     consistent = consistent_starts(num_nodes, i, j, R, w, known, noise.sigma) if (
-        len(candidates) > 1 or chain_like or few) else []
+        len(candidates) > 1 or chain_like or few_closures(known)) else []
     if consistent:
         fits = [start for start, _ in consistent]
         tight_from((min(fits, key=tls), TIGHT_START_MU))
