@@ -25,12 +25,12 @@ import numpy as np
 from benchmarks.bench_warm_start import measure, synthetic_edges
 from benchmarks.datasets import shared_dir_or_say
 from benchmarks.regime_cases import all_cases
+from rotavg_ros.core.depth_choice import rotations_from_factor, selection_cost
 from rotavg_ros.core.dmf import FitSpec, fit_symmetric
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.so3 import random_rotations
-from rotavg_ros.core.solver import rotations_from_factor, selection_cost
 from rotavg_ros.core.types import FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
 

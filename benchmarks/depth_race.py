@@ -25,9 +25,11 @@ import torch
 
 from benchmarks.datasets import shared_dir_or_say
 from benchmarks.regime_cases import all_cases
+from rotavg_ros.core import depth_choice
+from rotavg_ros.core.depth_choice import selection_cost
 from rotavg_ros.core.dmf import DMFFit, FitSpec, fit_symmetric
 from rotavg_ros.core.options import SolverOptions
-from rotavg_ros.core.solver import RotationAverager, selection_cost
+from rotavg_ros.core.solver import RotationAverager
 from rotavg_ros.core.types import FloatArray, IntArray
 
 Trace = dict[int, tuple[dict[int, float], float, int]]
@@ -38,15 +40,15 @@ def record_choices(case_name: str, shared: Any) -> list[Trace]:
     """Solve ``case_name`` (default profile, race off); the traces of every dense choice."""
     case = all_cases()[case_name](shared)
     choices: list[Trace] = []
-    original = RotationAverager._fit_depths
+    original = depth_choice.fit_depths
 
-    def fit_all(self: RotationAverager, n: int, i: IntArray, j: IntArray, R: FloatArray,
+    def fit_all(options: SolverOptions, n: int, i: IntArray, j: IntArray, R: FloatArray,
                 w: FloatArray, sparse: bool, warm: FloatArray | None = None,
                 warm_depth: int | None = None,
                 chordal: FloatArray | None = None) -> dict[int, DMFFit]:
         if sparse or warm is not None:
-            return original(self, n, i, j, R, w, sparse, warm, warm_depth, chordal)
-        dense = self.options.dense
+            return original(options, n, i, j, R, w, sparse, warm, warm_depth, chordal)
+        dense = options.dense
         width = dense.width_for(n)
         fits, trace = {}, {}
         for depth in dense.depths:
@@ -57,7 +59,7 @@ def record_choices(case_name: str, shared: Any) -> list[Trace]:
                 return False
 
             spec = FitSpec(depth=depth, hidden_width=width,
-                           seed=self.options.runtime.seed + depth, device="cpu",
+                           seed=options.runtime.seed + depth, device="cpu",
                            cuda_graph=False)
             fits[depth] = fit_symmetric(n, i, j, R, w, dense, spec, monitor=monitor)
             trace[depth] = (costs, selection_cost(fits[depth].H, i, j, R, w),
@@ -66,11 +68,11 @@ def record_choices(case_name: str, shared: Any) -> list[Trace]:
         return fits
 
     g = case.view_graph()
-    RotationAverager._fit_depths = fit_all  # type: ignore[method-assign]
+    depth_choice.fit_depths = fit_all
     try:
         RotationAverager(SolverOptions.from_flat(prune_ratio=None, device="cpu")).solve(g)
     finally:
-        RotationAverager._fit_depths = original  # type: ignore[method-assign]
+        depth_choice.fit_depths = original
     return choices
 
 

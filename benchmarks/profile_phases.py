@@ -21,11 +21,12 @@ import numpy as np
 import torch
 
 from benchmarks.datasets import load_ellis_island, load_se_sync, shared_dir_or_say
+from rotavg_ros.core.depth_choice import rotations_from_factor
 from rotavg_ros.core.dmf import FitSpec, fit_symmetric
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
-from rotavg_ros.core.solver import RotationAverager, rotations_from_factor
+from rotavg_ros.core.solver import RotationAverager
 
 
 def _sync(device: str) -> None:

@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 import torch
 
+from rotavg_ros.core.depth_choice import rotations_from_factor
 from rotavg_ros.core.dmf import FitSpec, fit_symmetric
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.optim.step_graph import StepGraph
 from rotavg_ros.core.options import DenseFitOptions, SolverOptions
 from rotavg_ros.core.so3 import random_rotations, rotation_about_axis
-from rotavg_ros.core.solver import RotationAverager, average_rotations, rotations_from_factor
+from rotavg_ros.core.solver import RotationAverager, average_rotations
 from rotavg_ros.core.view_graph import ViewGraph
 
 pytestmark = pytest.mark.skipif(

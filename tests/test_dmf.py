@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from rotavg_ros.core.depth_choice import rotations_from_factor
 from rotavg_ros.core.dmf import FitSpec, factor_shapes, fit_symmetric
 from rotavg_ros.core.dmf.dense import _residuals, reweight
 from rotavg_ros.core.dmf.residuals import DenseResiduals, GatherResiduals
@@ -15,7 +16,6 @@ from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.optim.factor_chain import FactorChain
 from rotavg_ros.core.options import DenseFitOptions
 from rotavg_ros.core.so3 import exp_map, random_rotations
-from rotavg_ros.core.solver import rotations_from_factor
 
 
 @pytest.mark.parametrize("depth", [2, 4, 6, 8])

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from rotavg_ros.core import solver as solver_module
+from rotavg_ros.core import depth_choice
 from rotavg_ros.core.dmf import CandidateRace, DMFFit, FitSpec, fit_symmetric
 from rotavg_ros.core.options import PROFILES, DenseFitOptions, SolverOptions
 from rotavg_ros.core.result import SolveResult
@@ -130,14 +130,14 @@ def test_the_race_decides_the_same_with_any_number_of_threads() -> None:
 
 
 def test_a_failing_candidate_leaves_no_other_waiting(monkeypatch: pytest.MonkeyPatch) -> None:
-    real = solver_module.fit_symmetric
+    real = depth_choice.fit_symmetric
 
     def failing(*args: Any, **kw: Any) -> DMFFit:
         if args[6].depth == 4:  # the FitSpec
             raise FloatingPointError("diverged")
         return real(*args, **kw)
 
-    monkeypatch.setattr(solver_module, "fit_symmetric", failing)
+    monkeypatch.setattr(depth_choice, "fit_symmetric", failing)
     g = _graph(24, 4)
     raised: list[BaseException] = []
 
@@ -159,13 +159,13 @@ def test_a_stopped_candidate_is_never_chosen(monkeypatch: pytest.MonkeyPatch) ->
     e = g.edge_arrays()
     truth = np.stack([np.eye(3)] * g.num_nodes)  # every edge below is identity
 
-    def fake_fits(self: RotationAverager, n: int, *args: Any, **kw: Any) -> dict[int, DMFFit]:
+    def fake_fits(options: SolverOptions, n: int, *args: Any, **kw: Any) -> dict[int, DMFFit]:
         rng = np.random.default_rng(0)
         noisy = np.einsum("nab,nbc->nac", truth[:n], random_rotations(n, rng))
         return {2: DMFFit(noisy, np.ones(1), 0.0, 300),
                 4: DMFFit(truth[:n].copy(), np.ones(1), 0.0, 100, stopped=True)}
 
-    monkeypatch.setattr(RotationAverager, "_fit_depths", fake_fits)
+    monkeypatch.setattr(depth_choice, "fit_depths", fake_fits)
     edges = (e.i, e.j, np.tile(np.eye(3), (e.num_edges, 1, 1)), np.ones(e.num_edges))
     sol = RotationAverager(SolverOptions.for_profile("paper")).solve_component(
         g.num_nodes, *edges)

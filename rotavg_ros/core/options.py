@@ -397,7 +397,7 @@ class RuntimeOptions:
     parallel, and the verification's GNC re-solves from different starts, run side by
     side on graphs of ``PARALLEL_MIN_EDGES`` edges or more (:mod:`rotavg_ros.core.threads`;
     the same results). None: one thread per candidate, as many candidates at once as there
-    are CPUs (robust when the CPU is shared; see ``solver._thread_plan``), and as many
+    are CPUs (robust when the CPU is shared; see ``depth_choice._thread_plan``), and as many
     re-solves."""
     progress: ProgressFn | None = field(default=None, repr=False, compare=False)
     """Called with a line of text at each stage (None: quiet)."""

@@ -10,29 +10,20 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Hashable, Mapping
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Hashable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from rotavg_ros.core.chordal_init import chordal_rotations, reused_relaxations
-from rotavg_ros.core.dmf import (
-    CandidateRace,
-    DMFFit,
-    FitSpec,
-    fit_symmetric,
-    fit_symmetric_lbfgs,
-    fit_vanilla,
-)
-from rotavg_ros.core.dmf.sparse import huber_delta, shows_outliers
+from rotavg_ros.core.depth_choice import choose_depth
+from rotavg_ros.core.dmf.sparse import shows_outliers
 from rotavg_ros.core.filter.edge_filter import filter_edges
 from rotavg_ros.core.node_sequence import node_sequence
-from rotavg_ros.core.options import DenseFitOptions, SolverOptions
+from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.class_noise import class_noise
 from rotavg_ros.core.robust.gauss_newton import refine_least_squares
@@ -54,10 +45,9 @@ from rotavg_ros.core.robust.verify import (
     verify,
 )
 from rotavg_ros.core.so3 import chordal_distance, geodesic_distance, project_to_so3
-from rotavg_ros.core.threads import cpu_count, verify_workers
+from rotavg_ros.core.threads import verify_workers
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
-from rotavg_ros.errors import SolverError
 
 
 @dataclass
@@ -154,45 +144,6 @@ REFIT_TOLERANCE = 0.02
 """A sparse-mode DMF solution fitted again without the outliers its own residuals show is
 kept unless its choice cost is more than this (relative) above the first fit's: a sign the
 refit failed, not a difference between two fits of the same inliers."""
-
-
-def rotations_from_factor(H: FloatArray) -> FloatArray:
-    """Project H's 3x3 blocks onto SO(3), resolving the reflection in H -> H Q.
-
-    ``H_i ~= R_i Q`` with Q in O(3). If most blocks have det < 0, Q is a reflection: flip
-    the sign of H's last column (H diag(1, 1, -1) gives the same H H^T) before projecting.
-    """
-    dets = np.linalg.det(H)
-    if np.count_nonzero(dets < 0) > dets.size / 2:
-        H = H * np.array([1.0, 1.0, -1.0])
-    return project_to_so3(H)
-
-
-def observation_cost(
-    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
-) -> float:
-    """Eq. 3 with p = 1: sum_ij w_ij d(R_ij, R_i R_j^T), in radians."""
-    pred = np.einsum("eab,ecb->eac", rot[i], rot[j])
-    return float(np.sum(w * geodesic_distance(R, pred)))
-
-
-def selection_cost(
-    H: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray
-) -> float:
-    """The cost a depth candidate is chosen by: :func:`observation_cost` of the rotations
-    of its factor ``H`` (N, 3, 3); NaN when ``H`` is not finite."""
-    if not np.all(np.isfinite(H)):
-        return math.nan
-    return observation_cost(rotations_from_factor(H), i, j, R, w)
-
-
-def resolve_device(name: str) -> str:
-    """``auto`` picks CUDA when available; an unavailable CUDA request raises ValueError."""
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise SolverError(f"device {name!r} requested but CUDA is not available here")
-    return name
 
 
 class RotationAverager:
@@ -466,10 +417,9 @@ class RotationAverager:
                 H0 = warm_start_rotations(initial, known, tree_rot, fi, fj, fR,
                                           opt.filter.sigma)
                 self._say(f"warm start: {int(known.sum())}/{n} nodes known")
-        rot, best, costs, iterations, pruned = self._fit_dmf(
-            n, fi, fj, fR, fw, sparse, H0, initial_depth, chordal)
-        return _FirstFit(rot, best, costs, iterations, pruned, kept, kept, untested, starts,
-                         sparse)
+        depths = choose_depth(opt, n, fi, fj, fR, fw, sparse, H0, initial_depth, chordal)
+        return _FirstFit(depths.rotations, depths.depth, depths.costs, depths.iterations,
+                         depths.pruned, kept, kept, untested, starts, sparse)
 
     def _verify(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
@@ -584,37 +534,6 @@ class RotationAverager:
         # The alternative's fit, or least squares' optimum in a robust fit's place.
         return verdict.rotations, ("ls" if verdict.fitted == LEAST_SQUARES
                                    else verdict.fitted)
-
-    def _fit_dmf(
-        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool,
-        warm: FloatArray | None, warm_depth: int | None, chordal: FloatArray | None = None,
-    ) -> tuple[FloatArray, int, dict[int, float], dict[int, int], tuple[int, ...]]:
-        """The DMF at each candidate depth (:meth:`_fit_depths`) and the choice by Eq. 3:
-        ``(rotations (node 0 = I), depth, cost by depth, iterations by depth, depths the
-        race stopped)``."""
-        fits = self._fit_depths(n, i, j, R, w, sparse, warm, warm_depth, chordal)
-        costs: dict[int, float] = {}
-        rots: dict[int, FloatArray] = {}
-        iterations = {depth: fit.iterations for depth, fit in fits.items()}
-        pruned = tuple(depth for depth, fit in fits.items() if fit.stopped)
-        for depth, fit in fits.items():
-            rot = rotations_from_factor(fit.H)
-            if not np.all(np.isfinite(rot)):
-                continue
-            rots[depth] = rot
-            costs[depth] = observation_cost(rot, i, j, R, w)
-        if not costs:
-            raise FloatingPointError("every DMF candidate diverged (non-finite factors)")
-        # A stopped candidate's cost is of an unfinished fit: only a fallback.
-        eligible = [d for d in costs if d not in pruned] or list(costs)
-        best = min(eligible, key=lambda d: costs[d])
-        if pruned:
-            self._say(f"candidate race: stopped depth(s) {', '.join(map(str, pruned))} at "
-                      f"iteration(s) {', '.join(str(iterations[d]) for d in pruned)}")
-        rot = rots[best]
-        rot = project_to_so3(np.einsum("nab,cb->nac", rot, rot[0]))  # gauge: R_i R_0^T
-        rot[0] = np.eye(3)  # exactly, not up to the SVD's rounding
-        return rot, best, costs, iterations, pruned
 
     def _robust_first(
         self, n: int, edges: tuple[IntArray, IntArray, FloatArray, FloatArray],
@@ -770,125 +689,9 @@ class RotationAverager:
             return 2.0 * num_edges / max(num_nodes, 1) < self.options.sparse.mean_degree
         return mode == "sparse"
 
-    # ----------------------------------------------------------------- private
-    def _fit_depths(
-        self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, sparse: bool,
-        warm: FloatArray | None = None, warm_depth: int | None = None,
-        chordal: FloatArray | None = None,
-    ) -> dict[int, DMFFit]:
-        """Each depth candidate's fit (a cold dense fit with ``bracket_depths``: the
-        shallowest and the deepest candidate only). ``warm``: start rotations near the answer
-        (a previous solution): dense mode then fits the depth ``warm_depth`` only, briefly;
-        sparse mode judges the edges at it first. ``chordal``: the chordal solution of these
-        edges, if already computed (sparse mode's start without ``warm``)."""
-        opt = self.options
-        dense, runtime = opt.dense, opt.runtime
-        device = resolve_device(runtime.device)
-        width = dense.width_for(n)
-        depths = list(dict.fromkeys(opt.sparse.depths if sparse else dense.depths))
-        if warm is not None and not sparse:
-            depths = [warm_depth if warm_depth in depths else depths[0]]
-        elif not sparse and dense.bracket_depths:  # the shallowest and the deepest only
-            depths = [d for d in depths if d in (min(depths), max(depths))]
-        H0: FloatArray | None = warm
-        delta = 0.0
-        if sparse and dense.explicit_constraint:
-            if H0 is None:
-                H0 = chordal if chordal is not None else chordal_rotations(n, i, j, R, w)
-            delta = huber_delta(H0, i, j, R, opt.sparse.huber_factor)
-        graphed = runtime.cuda_graphs and dense.explicit_constraint and not sparse
-        workers, intra = _thread_plan(len(depths), runtime.threads, device, graphed)
-        race = None
-        if (dense.prune_ratio is not None and len(depths) > 1 and not sparse
-                and warm is None and dense.explicit_constraint):
-            race = CandidateRace(min(depths), dense.prune_ratio)
-
-        def run(depth: int) -> DMFFit:
-            fit = FitSpec(depth=depth, hidden_width=width, seed=runtime.seed + depth,
-                          device=device, cuda_graph=runtime.cuda_graphs)
-
-            def report(step: int, loss: float) -> None:
-                self._say(f"depth {depth}: iteration {step}, loss {loss:.4g}")
-
-            if not dense.explicit_constraint:
-                return fit_vanilla(n, i, j, R, w, dense, fit, report)
-            if sparse and H0 is not None:
-                return fit_symmetric_lbfgs(n, i, j, R, w, opt.sparse, dense, fit, H0, delta,
-                                           progress=report, trusted_start=warm is not None)
-            if warm is not None:  # a short fit from the warm start, no warm-up
-                short = replace(dense, iterations=opt.warm.iterations, lr=opt.warm.lr, warmup=0)
-                return fit_symmetric(n, i, j, R, w, short, fit, report, H0=warm)
-            if race is not None:
-                return _race_fit(race, depth, dense, (i, j, R, w), lambda monitor: fit_symmetric(
-                    n, i, j, R, w, dense, fit, report, monitor=monitor))
-            return fit_symmetric(n, i, j, R, w, dense, fit, report)
-
-        # Largest depth first so the slow candidates start early; in a race, the
-        # pace-setter first (the others wait for it: it must have started).
-        order = sorted(depths, reverse=True)
-        if race is not None:
-            order = [race.pacer] + [d for d in order if d != race.pacer]
-        previous = torch.get_num_threads()
-        torch.set_num_threads(intra)
-        try:
-            if workers == 1:
-                done = {d: run(d) for d in (order if race is not None else depths)}
-                return {d: done[d] for d in depths}
-            with ThreadPoolExecutor(max_workers=workers) as pool:
-                futures = {d: pool.submit(run, d) for d in order}
-                return {d: futures[d].result() for d in depths}
-        finally:
-            torch.set_num_threads(previous)
-
     def _say(self, text: str) -> None:
         if self.options.runtime.progress is not None:
             self.options.runtime.progress(text)
-
-
-def _race_fit(
-    race: CandidateRace, depth: int, dense: DenseFitOptions,
-    edges: tuple[IntArray, IntArray, FloatArray, FloatArray],
-    fit: Callable[[Callable[[int, FloatArray], bool]], DMFFit],
-) -> DMFFit:
-    """Run ``fit(monitor)``, the candidate ``depth`` of ``race``: at the race's checkpoints
-    (``dense.prune_after``, then every ``dense.prune_every`` iterations) the monitor reports
-    the :func:`selection_cost` on ``edges`` ``(i, j, R, w)`` and stops the fit when told."""
-
-    def monitor(step: int, H: FloatArray) -> bool:
-        if step < dense.prune_after or (step - dense.prune_after) % dense.prune_every:
-            return False
-        return race.report(depth, step, selection_cost(H, *edges))
-
-    cost: float | None = None
-    try:
-        result = fit(monitor)
-        cost = selection_cost(result.H, *edges)
-        return result
-    finally:  # always, or the later candidates wait for this one for ever
-        race.finish(depth, cost)
-
-
-def _thread_plan(
-    candidates: int, threads: int | None, device: str, graphed: bool = True,
-) -> tuple[int, int]:
-    """``(parallel candidate fits, torch threads per fit)``.
-
-    CUDA: fits whose step is a replayed CUDA graph (``graphed``: the dense fit with
-    ``cuda_graphs``) get a thread each, on a stream of their own, since a replay leaves the
-    host idle; other fits on CUDA run one at a time.
-
-    ``threads=None``: one thread per fit, as many fits at once as there are CPUs. The fits
-    are sequences of small tensor operations; torch's OpenMP threads spin-wait between them
-    and collapse when the CPU is shared (Ellis Island, one depth, beside one busy process:
-    3.7 s with one thread, 68.7 s with two), and a node runs beside a SLAM front end.
-    An explicit ``threads`` is split among the parallel fits.
-    """
-    if device != "cpu":
-        return (candidates if graphed else 1), torch.get_num_threads()
-    if threads is None:
-        return max(1, min(candidates, cpu_count())), 1
-    workers = max(1, min(candidates, threads))
-    return workers, max(1, threads // workers)
 
 
 def warm_start_rotations(
