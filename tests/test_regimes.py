@@ -191,6 +191,20 @@ def test_grid_walk_case_closes_loops_at_revisited_corners() -> None:
         rc.grid_walk_case("test/grid-walk", 30, 8, closures=500)
 
 
+def test_large_graphs_are_as_large_as_they_say_and_deterministic() -> None:
+    """``benchmarks.large_graphs``: five distinct graphs of 2,000 nodes or more, each with
+    its true edges known (the oracle's) and false edges in it, drawn the same twice."""
+    from benchmarks.large_graphs import large_cases
+
+    cases = [build() for build in large_cases(0)]
+    assert len({c.name for c in cases}) == 5
+    for c in cases:
+        assert c.num_nodes >= 2000 and c.inlier is not None
+        assert 50 <= np.count_nonzero(~c.inlier) < 0.35 * c.num_edges
+    again = large_cases(0)[0]()
+    assert np.array_equal(again.R, cases[0].R) and np.array_equal(again.i, cases[0].i)
+
+
 def test_ours_runs_and_is_scored() -> None:
     case = _tiny_dense()
     # spawn: this test process may already run torch's thread pools, which a fork inherits
