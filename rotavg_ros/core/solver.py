@@ -290,8 +290,10 @@ class RotationAverager:
         The stages, in order: the first fit (:meth:`_first_fit`: the filter, then in sparse
         mode the robust re-solve where the chordal solution shows outliers, and the DMF);
         the verification (:meth:`_verify`); a DMF refit where the verification's inliers
-        call for one (:meth:`_refit_after_verify`); the estimator on the inliers by
-        cross-validation (:meth:`_estimator_by_cross_validation`)."""
+        call for one (:meth:`_refit_after_verify`), or least squares' optimum of them where
+        the cross-validation keeps a spanning tree in its folds (its fit replaces any refit);
+        the estimator on the inliers by cross-validation
+        (:meth:`_estimator_by_cross_validation`); the anchor back at identity."""
         opt = self.options
         w = w / np.mean(w)
         first = self._first_fit(n, i, j, R, w, odometry, initial, initial_depth)
