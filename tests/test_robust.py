@@ -1077,6 +1077,31 @@ def test_l1_over_a_robust_fit_only_on_graphs_with_odometry(on: bool) -> None:
     assert all(s == (not on) for s in stands["auto"])
     assert all(stands["none"])
 
+def test_hubers_fit_in_l1s_place_where_the_weights_differ() -> None:
+    """``huber_where_weights_differ``: on a weighted pose graph (a 5^3 lattice, odometry at
+    0.5 deg and loop closures at 3 deg, each edge weighted by its information, 10% false
+    closures) where the cross-validation says L1, Huber's fit replaces the solution instead
+    of the L1 fit, and is the more accurate on these draws (L1's gain is on noise whose
+    scale the weights do not tell)."""
+    from benchmarks import regime_cases as rc
+
+    ratios = []
+    for seed in (0, 1, 2, 3, 5):
+        base = rc.lattice_case("test/lattice", 5, random_false=0.10, seed=seed)
+        case = rc.weighted_case("test/weighted-lattice", base, odo_noise_deg=0.5,
+                                loop_noise_deg=3.0, seed=seed, noise_model="folded")
+        median = {}
+        for on in (True, False):
+            sol = average_rotations(case.num_nodes, case.i, case.j, case.R, case.weight,
+                                    SolverOptions.for_profile(
+                                        "default", seed=0, huber_where_weights_differ=on))
+            assert sol.verification == ("dmf+huber" if on else "dmf+l1")
+            median[on] = evaluate(dict(enumerate(sol.rotations)),
+                                  dict(enumerate(case.gt))).median_deg
+        ratios.append(median[True] / median[False])
+    assert sum(r < 1.0 for r in ratios) >= 4 and float(np.mean(ratios)) < 0.97
+
+
 def test_huber_fit_minimizes_the_huber_cost() -> None:
     """Huber's cost at its fit is below least squares' and no small move lowers it; with a
     threshold above every residual it is least squares."""

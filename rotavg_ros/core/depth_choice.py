@@ -83,7 +83,7 @@ def selection_cost(
 
 
 def resolve_device(name: str) -> str:
-    """``auto`` picks CUDA when available; an unavailable CUDA request raises ValueError."""
+    """``auto`` picks CUDA when available; an unavailable CUDA request raises SolverError."""
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
     if name.startswith("cuda") and not torch.cuda.is_available():
@@ -98,8 +98,9 @@ def choose_depth(
 ) -> DepthChoice:
     """The DMF at each candidate depth (:func:`fit_depths`) and the choice between them by
     Eq. 3 (:func:`observation_cost` of each candidate's rotations; a candidate the race
-    stopped only where no other is left). Raises FloatingPointError where every candidate
-    diverged."""
+    stopped only where no other is left). A candidate whose factor is not finite raises
+    (numpy's LinAlgError, from the projection onto SO(3)); FloatingPointError where no
+    candidate has finite rotations."""
     fits = fit_depths(options, n, i, j, R, w, sparse, warm, warm_depth, chordal)
     costs: dict[int, float] = {}
     rots: dict[int, FloatArray] = {}
@@ -135,11 +136,10 @@ def fit_depths(
     (a previous solution): dense mode then fits the depth ``warm_depth`` only, briefly;
     sparse mode judges the edges at it first. ``chordal``: the chordal solution of these
     edges, if already computed (sparse mode's start without ``warm``)."""
-    opt = options
-    dense, runtime = opt.dense, opt.runtime
+    dense, runtime = options.dense, options.runtime
     device = resolve_device(runtime.device)
     width = dense.width_for(n)
-    depths = list(dict.fromkeys(opt.sparse.depths if sparse else dense.depths))
+    depths = list(dict.fromkeys(options.sparse.depths if sparse else dense.depths))
     if warm is not None and not sparse:
         depths = [warm_depth if warm_depth in depths else depths[0]]
     elif not sparse and dense.bracket_depths:  # the shallowest and the deepest only
@@ -149,7 +149,7 @@ def fit_depths(
     if sparse and dense.explicit_constraint:
         if H0 is None:
             H0 = chordal if chordal is not None else chordal_rotations(n, i, j, R, w)
-        delta = huber_delta(H0, i, j, R, opt.sparse.huber_factor)
+        delta = huber_delta(H0, i, j, R, options.sparse.huber_factor)
     graphed = runtime.cuda_graphs and dense.explicit_constraint and not sparse
     workers, intra = _thread_plan(len(depths), runtime.threads, device, graphed)
     race = None
@@ -167,10 +167,10 @@ def fit_depths(
         if not dense.explicit_constraint:
             return fit_vanilla(n, i, j, R, w, dense, fit, report)
         if sparse and H0 is not None:
-            return fit_symmetric_lbfgs(n, i, j, R, w, opt.sparse, dense, fit, H0, delta,
+            return fit_symmetric_lbfgs(n, i, j, R, w, options.sparse, dense, fit, H0, delta,
                                        progress=report, trusted_start=warm is not None)
         if warm is not None:  # a short fit from the warm start, no warm-up
-            short = replace(dense, iterations=opt.warm.iterations, lr=opt.warm.lr, warmup=0)
+            short = replace(dense, iterations=options.warm.iterations, lr=options.warm.lr, warmup=0)
             return fit_symmetric(n, i, j, R, w, short, fit, report, H0=warm)
         if race is not None:
             return _race_fit(race, depth, dense, (i, j, R, w), lambda monitor: fit_symmetric(

@@ -92,14 +92,15 @@ class ComponentSolution:
 @dataclass
 class _FirstFit:
     """The first fit of one component (:meth:`RotationAverager._first_fit`), which the
-    verification judges. Local indices, node 0 = identity."""
+    verification judges. Local indices; node 0 = identity where a DMF was fitted (the
+    re-solve's rotations, where it is the answer, are anchored after the verification)."""
 
     rotations: FloatArray
     depth: int
     costs: dict[int, float]
     iterations: dict[int, int]
     pruned: tuple[int, ...]
-    kept: BoolArray
+    filter_kept: BoolArray
     """Edges the spanning-tree filter kept (all True without the filter)."""
     dmf_kept: BoolArray
     """Edges the kept solution was fitted on: the filter's, or the re-solve's inliers the
@@ -290,21 +291,22 @@ class RotationAverager:
         The stages, in order: the first fit (:meth:`_first_fit`: the filter, then in sparse
         mode the robust re-solve where the chordal solution shows outliers, and the DMF);
         the verification (:meth:`_verify`); a DMF refit where the verification's inliers
-        call for one (:meth:`_refit_after_verify`), or least squares' optimum of them where
-        the cross-validation keeps a spanning tree in its folds (its fit replaces any refit);
+        call for one (:meth:`_refit_after_verify`), or, in sparse mode, least squares'
+        optimum of them where the cross-validation keeps a spanning tree in its folds (its
+        fit replaces any refit; ``refit_where_folds_replace`` off);
         the estimator on the inliers by cross-validation
         (:meth:`_estimator_by_cross_validation`); the anchor back at identity."""
         opt = self.options
         w = w / np.mean(w)
         first = self._first_fit(n, i, j, R, w, odometry, initial, initial_depth)
         if not opt.verify.enabled or i.size < 3:
-            return ComponentSolution(first.rotations, first.kept, first.depth, first.costs,
-                                     first.iterations, first.kept, untested=first.untested,
+            return ComponentSolution(first.rotations, first.filter_kept, first.depth, first.costs,
+                                     first.iterations, first.filter_kept, untested=first.untested,
                                      pruned_depths=first.pruned)
         out = self._verify(n, i, j, R, w, odometry, first)
         if out is None:
-            return ComponentSolution(first.rotations, first.kept, first.depth, first.costs,
-                                     first.iterations, first.kept, verification="failed",
+            return ComponentSolution(first.rotations, first.filter_kept, first.depth, first.costs,
+                                     first.iterations, first.filter_kept, verification="failed",
                                      untested=first.untested, pruned_depths=first.pruned)
         # The edges the kept solution explains: the re-solve's inliers, or those the noise
         # model fitted to the DMF solution's own residuals calls inliers.
@@ -345,7 +347,7 @@ class RotationAverager:
         if estimator:
             kept_solution += f"+{estimator}"
         return ComponentSolution(final, inlier, first.depth, first.costs, first.iterations,
-                                 first.kept, out.noise.sigma_deg, kept_solution,
+                                 first.filter_kept, out.noise.sigma_deg, kept_solution,
                                  out.untested, out.relocalized, trusted, first.pruned,
                                  runs_left_out=out.runs_left_out,
                                  distrusted=out.distrusted,
@@ -419,18 +421,19 @@ class RotationAverager:
                 H0 = warm_start_rotations(initial, known, tree_rot, fi, fj, fR,
                                           opt.filter.sigma)
                 self._say(f"warm start: {int(known.sum())}/{n} nodes known")
-        depths = choose_depth(opt, n, fi, fj, fR, fw, sparse, H0, initial_depth, chordal)
-        return _FirstFit(depths.rotations, depths.depth, depths.costs, depths.iterations,
-                         depths.pruned, kept, kept, untested, starts, sparse)
+        choice = choose_depth(opt, n, fi, fj, fR, fw, sparse, H0, initial_depth, chordal)
+        return _FirstFit(choice.rotations, choice.depth, choice.costs, choice.iterations,
+                         choice.pruned, kept, kept, untested, starts, sparse)
 
     def _verify(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
         odometry: BoolArray, first: _FirstFit,
     ) -> VerifyOutcome | None:
         """The verification of the first fit: after a robust re-solve, the choice between it
-        and the DMF fit on its inliers (:func:`~.robust.verify.choose`); else the whole
-        verification of the DMF solution (:func:`~.robust.verify.verify`). None (and said)
-        where it failed numerically: the DMF solution then stands, marked ``failed``."""
+        and the DMF fit on its inliers, if one was fitted (:func:`~.robust.verify.choose`);
+        else the whole verification of the DMF solution (:func:`~.robust.verify.verify`).
+        None (and said) where it failed numerically: the first fit then stands, marked
+        ``failed``."""
         opt = self.options
         max_threshold = math.radians(opt.verify.max_threshold_deg)
         try:
@@ -439,7 +442,7 @@ class RotationAverager:
                 return choose(n, i, j, R, w, first.robust,
                               None if first.resolve_only else first.rotations,
                               first.dmf_kept, max_threshold, least_squares_below=chain_like)
-            return verify(n, i, j, R, w, first.rotations, first.kept, first.starts,
+            return verify(n, i, j, R, w, first.rotations, first.filter_kept, first.starts,
                           known_inlier=odometry,
                           initial_threshold=math.radians(opt.verify.initial_threshold_deg),
                           max_threshold=max_threshold, rounds=opt.verify.rounds,
@@ -453,15 +456,15 @@ class RotationAverager:
 
     def _refit_after_verify(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-        first: _FirstFit, out: VerifyOutcome, cold: bool,
+        first: _FirstFit, out: VerifyOutcome, no_initial: bool,
     ) -> FloatArray:
         """The verified solution, or the DMF fitted again on its inliers where they call
         for it (:meth:`_refit_dmf`, which keeps ``out.rotations``, the same object, where the
-        refit loses). ``cold``: the solve had no initial rotations."""
+        refit loses). ``no_initial``: the solve was given no initial rotations."""
         opt = self.options
         inlier = out.classified
         if out.chosen == "robust":
-            if (first.robust is None and not self._least_squares_stands(out, first.kept)
+            if (first.robust is None and not self._least_squares_stands(out, first.filter_kept)
                     and redundancy(n, out.inlier) >= self._least_squares_below()):
                 # (else the DMF on these inliers has just lost, or the re-solve's residuals
                 # or its inliers' redundancy said least squares)
@@ -469,7 +472,7 @@ class RotationAverager:
                 # Gaussian (the filter would drop the true edges of a high-noise graph again).
                 from_resolve = self._refit_from_resolve(out.resolve_gaussian)
                 # A cold, filtered refit on every edge repeats the first fit exactly.
-                repeat = cold and not from_resolve and bool(np.all(out.inlier))
+                repeat = no_initial and not from_resolve and bool(np.all(out.inlier))
                 return self._refit_dmf(n, i, j, R, w, out.inlier, out.rotations, out.cap,
                                        warm=from_resolve, unfiltered=from_resolve,
                                        fitted=first.rotations if repeat else None)
@@ -518,7 +521,8 @@ class RotationAverager:
             tree=tree, l1_from_fold=NOISE_AXES.get() == 1,
             workers=verify_workers(i.size, opt.runtime.threads),
             robust_l1_stands=not (opt.verify.l1_over_robust_with_odometry
-                                  and bool(odometry.any())))
+                                  and bool(odometry.any())),
+            huber_for_l1=opt.verify.huber_where_weights_differ and _weights_differ(w[inlier]))
         robust_fate = ("; the kept robust fit stands"
                        if verdict.robust_given and not verdict.replaced
                        else "; Huber's fit replaces the robust fit"
@@ -859,6 +863,12 @@ def _folds_keep_tree(n: int, i: IntArray, j: IntArray, seed: int, tree: BoolArra
     every fold and reaches a verdict (:func:`~.robust.l1_choice.fold_plan`)."""
     plan = fold_plan(n, i, j, seed=seed, tree=tree)
     return plan.tree_kept and not plan.split
+
+
+def _weights_differ(w: FloatArray) -> bool:
+    """Whether the edges' weights are not all equal (beyond rounding): the input's
+    information weights tell each edge's noise scale."""
+    return bool(w.size) and float(np.max(w)) > (1.0 + 1e-9) * float(np.min(w))
 
 
 def _anchored(rotations: FloatArray, anchor: int) -> FloatArray:

@@ -180,6 +180,7 @@ def choose_by_cross_validation(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     folds: int = FOLDS, seed: int = 0, tree: BoolArray | None = None,
     l1_from_fold: bool = False, workers: int = 1, robust_l1_stands: bool = True,
+    huber_for_l1: bool = False,
 ) -> EstimatorVerdict:
     """The solution ``rot``, the least-squares optimum or the alternative's fit of the
     given edges, by ``folds``-fold cross-validation of least squares against the
@@ -200,7 +201,10 @@ def choose_by_cross_validation(
     the other. ``robust_l1_stands``: a robust ``rot`` stands where L1 wins (a view graph's
     DMF fit, reweighted towards L1); False (a pose graph's, least squares in the bulk):
     Huber's fit replaces it there, the estimator that averages the bulk as least squares
-    does and caps the tails (:data:`HUBER_K`), as where the folds keep a tree."""
+    does and caps the tails (:data:`HUBER_K`), as where the folds keep a tree.
+    ``huber_for_l1``: where L1 wins over a least-squares-like ``rot``, Huber's fit replaces
+    it instead of the L1 fit (the caller sets it where the weights tell each edge's noise
+    scale: ``VerifyOptions.huber_where_weights_differ``)."""
     ls = refine_least_squares(rot, i, j, R, w, iterations=20)
     r = residual_angles(ls, i, j, R)
     median = float(np.median(np.sqrt(w) * r))
@@ -242,9 +246,10 @@ def choose_by_cross_validation(
         return EstimatorVerdict(alternative_fit(HUBER, ls, i, j, R, w, median),
                                 alternative, change, run, tree_kept, replaced=True,
                                 robust_given=True, fitted=HUBER)
-    return EstimatorVerdict(alternative_fit(alternative, ls, i, j, R, w, median),
+    fitted = HUBER if alternative == L1 and huber_for_l1 else alternative
+    return EstimatorVerdict(alternative_fit(fitted, ls, i, j, R, w, median),
                             alternative, change, run, tree_kept, replaced=True,
-                            robust_given=robust, fitted=alternative)
+                            robust_given=robust, fitted=fitted)
 
 
 @dataclass(frozen=True)
