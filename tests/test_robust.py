@@ -1090,6 +1090,7 @@ def test_hubers_fit_in_l1s_place_where_the_weights_differ() -> None:
         base = rc.lattice_case("test/lattice", 5, random_false=0.10, seed=seed)
         case = rc.weighted_case("test/weighted-lattice", base, odo_noise_deg=0.5,
                                 loop_noise_deg=3.0, seed=seed, noise_model="folded")
+        assert case.weight is not None
         median = {}
         for on in (True, False):
             sol = average_rotations(case.num_nodes, case.i, case.j, case.R, case.weight,
