@@ -523,11 +523,13 @@ class RotationAverager:
             robust_l1_stands=not (opt.verify.l1_over_robust_with_odometry
                                   and bool(odometry.any())),
             huber_for_l1=opt.verify.huber_where_weights_differ and _weights_differ(w[inlier]))
+        swapped = verdict.replaced and verdict.fitted != verdict.estimator
         robust_fate = ("; the kept robust fit stands"
                        if verdict.robust_given and not verdict.replaced
                        else "; Huber's fit replaces the robust fit"
-                       if verdict.replaced and verdict.fitted != verdict.estimator
-                       else "")
+                       if swapped and verdict.robust_given
+                       else "; Huber's fit in the L1 fit's place (the weights differ)"
+                       if swapped else "")
         self._say("cross-validation: no verdict (the inliers do not join every node)"
                   if np.isnan(verdict.held_out_change)
                   else f"cross-validation: {verdict.estimator}"
