@@ -74,6 +74,28 @@ def test_the_loops_noise_scale_is_the_odometrys_despite_many_false_closures() ->
                                      w[few], case.odometry[few]))
 
 
+def test_the_loops_upper_bound_is_above_their_scale_and_looser_with_few_closures() -> None:
+    """The bound is never below the point estimate, further above it with 8 closures than
+    with 40, and with 40 it reads the generator's scale (Gaussian noise, 12 draws: 0.82-1.76
+    times it; the loops share odometry, so the ratios are not independent and the bound is
+    no sure 99% one: 3 of the 12 were below the true scale)."""
+    true_sigma = np.radians(1.5) / np.sqrt(3.0)  # tangent noise: 1.5 / sqrt(3) per axis
+    spread: dict[int, list[float]] = {8: [], 40: []}
+    for closures in (8, 40):
+        for seed in range(12):
+            case = rc.chain_case("test/bound", 500, closures=closures, seed=seed,
+                                 odo_noise_deg=1.5, loop_noise_deg=1.5,
+                                 noise_model="tangent")
+            w = np.ones(case.num_edges)
+            args = (case.num_nodes, case.i, case.j, case.R, w, case.odometry)
+            scale, bound = loop_noise_scale(*args), loop_noise_scale(*args, upper=True)
+            assert bound >= scale
+            if closures == 40:
+                assert 0.6 * true_sigma < bound < 2.5 * true_sigma
+            spread[closures].append(bound / scale)
+    assert np.median(spread[8]) > 1.2 * np.median(spread[40])
+
+
 def test_nothing_is_dropped_without_odometry_or_a_noise_scale() -> None:
     case = rc.chain_case("test/pcm", 300, closures=10, false_grouped=0.4, seed=1)
     w = np.ones(case.num_edges)
