@@ -665,7 +665,7 @@ def test_default_profile_rejects_a_group_of_consistent_false_closures() -> None:
 
 
 def test_default_profile_leaves_out_closures_a_few_degrees_wrong_on_a_chain() -> None:
-    """A third of the closures 5-30 deg off the truth (a registration stuck in a nearby
+    """30% of the closures 5-30 deg off the truth (a registration stuck in a nearby
     minimum): step 3's fit bends to them and reads a noise scale that lets them all in;
     the loops over the odometry show the odometry's scale, and the tight pass at it leaves
     about half of them out (six draws: median error 1.86x the oracle's on average before,

@@ -30,8 +30,9 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    pairwise-consistent closure sets (:func:`consistent_starts`,
    :mod:`.closure_consistency`); step 3 on the result of the lowest truncated squares
    (:func:`truncated_squares`, the GNC's objective). Where such a start fits its own edges
-   at a noise scale below ``RESCALE_BELOW`` of step 3's, or the closures' loops over the
-   odometry show one (an upper bound of their scale,
+   at a noise scale below ``RESCALE_BELOW`` of step 3's, or, on an odometry chain whose
+   odometry does not turn about one axis, the closures' loops over the odometry show one
+   below every such start's (an upper bound of their scale,
    :func:`~.closure_consistency.loop_noise_scale`: no fit enters it), false closures bent
    step 3's fit and inflated its scale: the pass runs again at the lower scale, every
    candidate costed there. At the loops' scale the GNC's inliers then stand as they are
@@ -69,7 +70,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Concatenate, ParamSpec, TypeVar
 
 import numpy as np
@@ -146,8 +147,8 @@ same accuracy."""
 
 RESCALE_BELOW = 0.75
 """The tight pass runs again at the noise scale of a pairwise-consistent start's own fit,
-or at the one the closures' loops over the odometry show, when that is below this
-fraction of step 3's (see :func:`robust_resolve`)."""
+or on a chain at the one the closures' loops over the odometry show, when that is below
+this fraction of step 3's (see :func:`robust_resolve`)."""
 
 CONSISTENCY_SCALES = (1.0, 0.5, 0.25)
 """The pairwise closure test of the tight pass runs at the fitted noise scale times each of
@@ -675,10 +676,10 @@ def _tight_pass(
             if not any(np.array_equal(tight_inlier, c[2]) for c in candidates):
                 candidates.append((tls(tight_rot), tight_rot, tight_inlier))
 
-    def from_every_start(consistent: list[FloatArray]) -> None:
+    def from_every_start(consistent_fits: list[FloatArray]) -> None:
         begins = [(rot, TIGHT_START_MU)] + [(start, 0.0) for start in chain_starts.values()]
-        if consistent:  # (the GNC keeps the order of the starts' costs: from the best)
-            begins.append((min(consistent, key=tls), TIGHT_START_MU))
+        if consistent_fits:  # (the GNC keeps the order of the starts' costs: from the best)
+            begins.append((min(consistent_fits, key=tls), TIGHT_START_MU))
         tight_from(*begins)
 
     from_every_start([])
@@ -694,16 +695,17 @@ def _tight_pass(
     # costed there.
     scales = [_noise_of(start, i, j, R, w, kept, max_threshold, tree)
               for start, kept in consistent.starts]
-    # The loops' bound counts on a chain with three noise axes only. Elsewhere step 3's
-    # scale rests on many redundant edges, and loops over the odometry alone mistake the
-    # odometry's noise for every edge's where the closures' differs (odometry at 0.5 deg,
-    # closures at 3 deg, every weight 1: the tight pass at the loops' scale then cut true
-    # closures, up to 21% higher medians on the stress variants of parking-garage and
-    # sphere2500). Nor where the odometry turns about one axis (a planar robot): its chain
-    # is fitted with the three-axis model (``RotationAverager.solve_component``), whose
-    # chi-square reads the loops' one-axis angles at a third of their scale or less: the
-    # pass cut true closures (the planar chain at six stress draws of seven 5-27%
-    # higher).
+    # The loops' bound counts where it is below every consistent start's scale (also
+    # where there is no such start), and only on a chain whose odometry does not turn
+    # about one axis. Elsewhere step 3's scale rests on many redundant edges, and loops
+    # over the odometry alone mistake the odometry's noise for every edge's where the
+    # closures' differs (odometry at 0.5 deg, closures at 3 deg, every weight 1: the tight
+    # pass at the loops' scale then cut true closures, up to 21% higher medians on the
+    # stress variants of parking-garage and sphere2500). A planar robot's chain is fitted
+    # with the three-axis model (``RotationAverager.solve_component``), whose chi-square
+    # reads the loops' one-axis angles at a third of their scale or less: there the pass
+    # cut true closures (the planar chain: higher by 5-27% at six of the seven stress
+    # draws of twenty that moved).
     by_loops = False  # the lower scale is the loops' bound
     bound = consistent.loop_bound
     if (chain_like and math.isfinite(bound) and not any(s <= bound for s in scales)
@@ -722,11 +724,13 @@ def _tight_pass(
     best = min(candidates, key=lambda c: c[0])
     if not np.array_equal(best[2], inlier):  # else: the same fit as step 3's
         if by_loops:
-            # At the scale the loops show, which no fit enters, the GNC's inliers stand:
-            # step 3's re-admission judges an edge outside the fit by its prediction
-            # variance, which on a chain with long odometry between closures excuses
-            # closures several degrees wrong (false ones 5-30 deg off the truth: re-admitted
-            # every one, 1.8x the oracle's median error).
+            # At the scale the loops show, which no fit enters, the inliers of the
+            # candidate that costs least there stand (whichever round found it), with
+            # the noise model of their own fit, its classification unused: step 3's
+            # re-admission judges an edge outside the fit by its prediction variance,
+            # which on a chain with long odometry between closures excuses closures
+            # several degrees wrong (false ones 5-30 deg off the truth, six 300-keyframe
+            # chains: settled, 68 of their 72 kept, as without the bound; unsettled, 38).
             fitted, _, fitted_t = _fit_and_classify(best[1], i, j, R, w, best[2],
                                                     max_threshold, tree)
             tight = (best[1], best[2], fitted, fitted_t)
@@ -808,7 +812,7 @@ def _leave_runs_out(
 class ConsistentStarts:
     """:func:`consistent_starts`' answer."""
 
-    starts: list[tuple[FloatArray, BoolArray]] = field(default_factory=list)
+    starts: tuple[tuple[FloatArray, BoolArray], ...] = ()
     """``(rotations, edges kept)`` per start."""
     loop_bound: float = math.nan
     """An upper bound of the noise scale the closures' loops over the odometry show
@@ -844,8 +848,8 @@ def consistent_starts(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
         if connects_all(num_nodes, i, j, keep):
             start = chordal_rotations(num_nodes, i[keep], j[keep], R[keep], w[keep])
             starts.append((refine_least_squares(start, i, j, R, w * keep), keep))
-    return ConsistentStarts(starts, loop_noise_scale(num_nodes, i, j, R, w, odometry, loops,
-                                                     upper=True))
+    return ConsistentStarts(starts=tuple(starts), loop_bound=loop_noise_scale(
+        num_nodes, i, j, R, w, odometry, loops, upper=True))
 
 
 def connects_all(n: int, i: IntArray, j: IntArray, keep: BoolArray) -> bool:
