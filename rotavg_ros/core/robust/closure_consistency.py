@@ -139,23 +139,32 @@ def loop_noise_scale(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w:
     is less sure than that (Gaussian noise, 40 closures: below the true scale in 3 of 12
     draws). It stands while the false closures are fewer than ``n - rank + 1`` (2 of 8,
     23 of 40); with more, it is a false closure's ratio, which errs high."""
+    scale, bound = loop_noise_scale_and_bound(num_nodes, i, j, R, w, odometry, loops)
+    return bound if upper else scale
+
+
+def loop_noise_scale_and_bound(
+    num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    odometry: BoolArray, loops: ClosureLoops | None = None,
+) -> tuple[float, float]:
+    """:func:`loop_noise_scale` and its upper bound (``upper``) from one pass over the
+    loops: ``(scale, bound)``, both NaN with too few testable closures."""
     if loops is None:
         loops = closure_loops(num_nodes, i, j, R, w, odometry)
     if loops is None or loops.testable.size < LOOP_MIN_CLOSURES:
-        return math.nan
+        return math.nan, math.nan
     angle = np.arccos(np.clip((np.trace(loops.E, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
     with np.errstate(invalid="ignore"):
         ratio = angle ** 2 / (loops.pb - loops.pa + loops.own)
     ratio = ratio[np.isfinite(ratio)]
     if ratio.size < LOOP_MIN_CLOSURES:
-        return math.nan
+        return math.nan, math.nan
     q25 = CHI2_3_Q25 if NOISE_AXES.get() == 3 else CHI2_1_Q25
-    if not upper:
-        return math.sqrt(float(np.quantile(ratio, LOOP_QUANTILE)) / q25)
     n, p = ratio.size, LOOP_QUANTILE
     rank = math.ceil(n * p + LOOP_BOUND_Z * math.sqrt(n * p * (1.0 - p)) + 0.5)
     k = min(rank, n) - 1  # (0-based)
-    return math.sqrt(float(np.partition(ratio, k)[k]) / q25)
+    return (math.sqrt(float(np.quantile(ratio, LOOP_QUANTILE)) / q25),
+            math.sqrt(float(np.partition(ratio, k)[k]) / q25))
 
 
 def consistent_closures(

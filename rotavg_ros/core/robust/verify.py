@@ -82,7 +82,7 @@ from rotavg_ros.core.filter.edge_filter import tree_rotations
 from rotavg_ros.core.robust.closure_consistency import (
     closure_loops,
     consistent_closures,
-    loop_noise_scale,
+    loop_noise_scale_and_bound,
 )
 from rotavg_ros.core.robust.closure_runs import independent_pieces, suspect_runs
 from rotavg_ros.core.robust.gauss_newton import (
@@ -838,7 +838,7 @@ def consistent_starts(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
     seen: list[BoolArray] = []
     sigmas = [sigma * scale for scale in CONSISTENCY_SCALES]
     loops = closure_loops(num_nodes, i, j, R, w, odometry)
-    scale = loop_noise_scale(num_nodes, i, j, R, w, odometry, loops)
+    scale, bound = loop_noise_scale_and_bound(num_nodes, i, j, R, w, odometry, loops)
     if scale < sigmas[-1]:
         sigmas.append(scale)
     for keep in consistent_closures(num_nodes, i, j, R, w, odometry, sigmas, loops):
@@ -848,8 +848,7 @@ def consistent_starts(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
         if connects_all(num_nodes, i, j, keep):
             start = chordal_rotations(num_nodes, i[keep], j[keep], R[keep], w[keep])
             starts.append((refine_least_squares(start, i, j, R, w * keep), keep))
-    return ConsistentStarts(starts=tuple(starts), loop_bound=loop_noise_scale(
-        num_nodes, i, j, R, w, odometry, loops, upper=True))
+    return ConsistentStarts(starts=tuple(starts), loop_bound=bound)
 
 
 def connects_all(n: int, i: IntArray, j: IntArray, keep: BoolArray) -> bool:
