@@ -29,7 +29,10 @@ steps, seed 0: 50.9 deg mean error). The suspects:
 
 A suspect is only that: the verification re-solves with the suspects as ordinary edges and
 keeps that fit only where it explains the data clearly better
-(:func:`~.verify.robust_resolve`).
+(:func:`~.verify.robust_resolve`). Where no loop closure ends between a suspect that fit
+cut and a jump it kept, the closures cannot tell the two cuts apart, and the fit leaves
+out the jump instead (:func:`cuts_onto_jumps`): a cut that is only a misfit costs more in
+that comparison than a jump's.
 
 Conventions: odometry edges join consecutive node indices; ``R_ij ~= R_i R_j^T``.
 """
@@ -116,6 +119,63 @@ def odometry_jumps(R: FloatArray, odometry: BoolArray) -> BoolArray:
     median = float(np.median(steps))
     spread = max(1.4826 * float(np.median(np.abs(steps - median))), MIN_SPREAD)
     return odometry & (angle > median + JUMP_MADS * spread)
+
+
+def cuts_onto_jumps(rotations: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
+                    odometry: BoolArray, inlier: BoolArray, suspects: OdometrySuspects,
+                    ) -> tuple[FloatArray, BoolArray]:
+    """The fit ``(rotations, inlier)`` with each suspect it cuts (``~inlier``) that is not a
+    jump moved onto a jump suspect it keeps, where the odometry between the two is kept and
+    no loop closure (any edge not odometry, kept or not) ends on the nodes between them.
+    No edge then tells the two cuts apart: the nodes between follow the odometry from the
+    other side instead (world-to-node rotations composed along the measured steps,
+    ``R_b = R_ab^T R_a``), and every edge's residual is the same but for the two steps'
+    swap. Returns new arrays; the input is not changed."""
+    rot, kept = rotations.copy(), inlier.copy()
+    num_nodes = rot.shape[0]
+    closure_end = np.zeros(num_nodes, bool)
+    closure_end[i[~odometry]] = True
+    closure_end[j[~odometry]] = True
+    step_from = np.full(num_nodes, -1)  # step_from[k]: the odometry edge k -- k+1
+    odometry_edges = np.flatnonzero(odometry)
+    step_from[np.minimum(i, j)[odometry_edges]] = odometry_edges
+    for cut in np.flatnonzero(suspects.edges & ~suspects.jumps & ~inlier):
+        m = int(min(i[cut], j[cut]))
+        for direction in (1, -1):  # the jump after the cut, then before it
+            jump = _kept_jump_beside(m, direction, step_from, closure_end, kept, suspects)
+            if jump is None:
+                continue
+            kept[cut], kept[jump] = True, False
+            # The nodes between follow the odometry from the cut's side, now joined.
+            k = int(min(i[jump], j[jump]))
+            path = range(m + 1, k + 1) if direction > 0 else range(m, k, -1)
+            for node in path:
+                edge = step_from[node - 1] if direction > 0 else step_from[node]
+                other = node - direction
+                rot[node] = (R[edge].T @ rot[other] if i[edge] == other
+                             else R[edge] @ rot[other])
+            break
+    return rot, kept
+
+
+def _kept_jump_beside(m: int, direction: int, step_from: IntArray, closure_end: BoolArray,
+                      kept: BoolArray, suspects: OdometrySuspects) -> int | None:
+    """The jump suspect kept in ``kept`` that the walk from the step ``m -- m + 1`` in
+    ``direction`` (+1: later steps) meets over kept odometry steps and nodes no closure ends
+    on, or None."""
+    num_nodes = step_from.shape[0]
+    node = m + 1 if direction > 0 else m  # the first node past the cut step
+    while 0 <= node < num_nodes and not closure_end[node]:
+        if direction > 0:
+            step = int(step_from[node])  # node -- node + 1
+        else:
+            step = int(step_from[node - 1]) if node > 0 else -1  # node - 1 -- node
+        if step < 0 or not kept[step]:
+            return None
+        if suspects.jumps[step]:
+            return step
+        node += direction
+    return None
 
 
 def _count_across(a: IntArray, b: IntArray, num_nodes: int) -> FloatArray:

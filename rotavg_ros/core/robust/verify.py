@@ -45,7 +45,8 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    from the odometry's pieces joined where the most closures agree, and that fit stands
    where its truncated squares, with ``BREAK_PENALTY`` caps for each suspect it leaves out
    that is only a misfit (no jump pointed at or rare), are the lower
-   (:func:`_breaks_explain_more`).
+   (:func:`_breaks_explain_more`); a cut that no closure tells from a kept jump's moves onto
+   the jump first (:func:`~.odometry_breaks.cuts_onto_jumps`).
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
    (:mod:`.relocalize`); if that lowers the choice cost, step 3 runs again from there. The
    DMF solution's far-off nodes move the same way. Last, on a sparse graph, least squares
@@ -104,7 +105,11 @@ from rotavg_ros.core.robust.noise import (
     noise_axes,
     redundancy,
 )
-from rotavg_ros.core.robust.odometry_breaks import OdometrySuspects, suspect_odometry
+from rotavg_ros.core.robust.odometry_breaks import (
+    OdometrySuspects,
+    cuts_onto_jumps,
+    suspect_odometry,
+)
 from rotavg_ros.core.robust.odometry_start import odometry_start
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
 from rotavg_ros.core.threads import map_in_threads
@@ -597,6 +602,14 @@ def robust_resolve(
             w_join = np.where(suspects.edges, float(np.median(w[~odometry])), w)
             joined = odometry_start(num_nodes, i, j, R, w_join, trusted, initial_threshold)
             untrusting = tight(trusted, {"odometry": joined})
+            # A cut the closures cannot tell from a jump's: on the jump.
+            moved_rot, moved_inlier = cuts_onto_jumps(untrusting.rotations, i, j, R,
+                                                      odometry, untrusting.inlier, suspects)
+            if not np.array_equal(moved_inlier, untrusting.inlier):
+                moved_noise, _, moved_t = _fit_and_classify(moved_rot, i, j, R, w,
+                                                             moved_inlier, max_threshold, tree)
+                untrusting = TightFit(moved_rot, moved_inlier, moved_noise, moved_t,
+                                      untrusting.runs_left_out)
             if _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, suspects):
                 tight_fit, known, distrusted = untrusting, trusted, suspects.edges
         rot, inlier, noise, t = (tight_fit.rotations, tight_fit.inlier, tight_fit.noise,
