@@ -1,6 +1,6 @@
 """Short odometry chains with a few loop closures, some false (issue 14's new-user graph).
 
-``python -m benchmarks.short_chains [--seeds 0-19] [--peers]``
+``python -m benchmarks.short_chains [--seeds 0-19] [--peers] [--broken-steps N]``
 
 The issue's example: a chain of 50 keyframes with 8 true loop closures and 2 or 7 false
 ones, where the node said "0 filtered" and answered no better than least squares. Here:
@@ -15,6 +15,13 @@ them). One line per graph; the summary counts the graphs where our median is mor
 median alone) and, with ``--peers``, where our median is above the best peer's by more
 than 10% (or 0.05 deg). Draws the generator cannot place (a group of 7 on 50 keyframes, at some
 seeds) are said and skipped. Needs no shared data.
+
+``--broken-steps N``: a front end that lost its track besides. Each graph has ``N`` odometry
+steps replaced by false rotations (:func:`~benchmarks.regime_cases.broken_odometry_case`),
+and a fourth kind without false closures joins. A wrong step that fewer than two true
+closures cross cannot be told from the nodes beyond it being placed by it (one closure
+against one step; nothing at all where none crosses; the oracle, without the step, then
+leaves those nodes where its solve starts them): the summary counts those graphs apart.
 """
 
 from __future__ import annotations
@@ -25,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from benchmarks.regime_cases import RegimeCase, chain_case
+from benchmarks.regime_cases import RegimeCase, broken_odometry_case, chain_case
 from benchmarks.regimes import evaluate, run_method, solve_ours
 
 PEERS = ("gtsam_chordal", "gtsam_gnc_tls", "gtsam_gnc_tls+odo")
@@ -68,11 +75,14 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", default="0-19", help="draws, e.g. 0-19 (default) or 5")
     p.add_argument("--peers", action="store_true", help="also GTSAM chordal and GNC-TLS")
+    p.add_argument("--broken-steps", type=int, default=0,
+                   help="odometry steps replaced by false rotations in each graph (default 0)")
     args = p.parse_args()
-    off_oracle = off_oracle_mean = off_peer = total = 0
+    off_oracle = off_oracle_mean = off_peer = total = untellable = untellable_off = 0
+    kinds = ((("rand0", "false_random", 0), *KINDS) if args.broken_steps else KINDS)
     for model in ("folded", "tangent"):
         for nodes in (50, 100):
-            for label, kind, false in KINDS:
+            for label, kind, false in kinds:
                 for seed in _seeds(args.seeds):
                     name = f"short/{nodes}/{label}"
                     try:
@@ -82,6 +92,13 @@ def main() -> int:
                     except ValueError as exc:
                         print(f"{model:7s} {name:18s} draw {seed:2d}: skipped ({exc})")
                         continue
+                    tell = ""
+                    if args.broken_steps:
+                        case = broken_odometry_case(f"{name}/broken{args.broken_steps}", case,
+                                                    steps=args.broken_steps, seed=seed)
+                        if _fewest_true_across(case) < 2:
+                            untellable += 1
+                            tell = "  (a wrong step crossed by < 2 true closures)"
                     row = solve(case, args.peers)
                     total += 1
                     bad_oracle = row.ours[1] > 1.5 * row.oracle[1]
@@ -99,13 +116,28 @@ def main() -> int:
                         line += f", best peer {best} {b[0]:6.2f} / {b[1]:6.2f} ({b[2]:.3f} s)"
                         line += "  MISS" if miss else ""
                     print(line + ("  >1.5x oracle" if bad_oracle else "")
-                          + ("  mean >1.5x oracle" if bad_mean else "") + f"  | {row.note}",
-                          flush=True)
+                          + ("  mean >1.5x oracle" if bad_mean else "") + tell
+                          + f"  | {row.note}", flush=True)
+                    if tell:
+                        untellable_off += bad_oracle or bad_mean
     print(f"\n{total} graphs: our median more than 1.5x the oracle's on {off_oracle}, "
           f"our mean on {off_oracle_mean}"
           + (f"; more than 10% (or 0.05 deg) above the best peer's on {off_peer}"
-             if args.peers else ""))
+             if args.peers else "")
+          + (f"; {untellable} graphs have a wrong step fewer than two true closures cross, "
+             f"{untellable_off} of them among those above 1.5x" if args.broken_steps else ""))
     return 0
+
+
+def _fewest_true_across(case: RegimeCase) -> int:
+    """The fewest true loop closures across any of ``case``'s false odometry steps (a closure
+    ``(a, b)``, ``a < b``, crosses the step ``(m, m + 1)`` where ``a <= m < b``)."""
+    assert case.inlier is not None
+    a, b = np.minimum(case.i, case.j), np.maximum(case.i, case.j)
+    step = b - a == 1
+    true_closure = ~step & case.inlier
+    return min((int(np.count_nonzero(true_closure & (a <= m) & (m < b)))
+                for m in a[step & ~case.inlier]), default=TRUE_CLOSURES)
 
 
 if __name__ == "__main__":
