@@ -97,17 +97,24 @@ def test_where_jumps_are_rare_every_jump_is_suspect() -> None:
                                 np.zeros(i.size, bool)).edges.any()
 
 
-def test_a_cut_no_closure_tells_from_a_jump_moves_onto_it() -> None:
-    # 100 keyframes, step 60 a jump; a fit that keeps it and cuts step 65 instead (nodes
-    # 61-65 turned with the jump; no closure ends on them): the cut moves onto the jump.
-    closures = [(10, 90), (20, 80), (50, 60), (66, 95)]
+def _fit_cutting(closures: list[tuple[int, int]], cut: int) -> tuple[
+        np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+        OdometrySuspects]:
+    """A 100-keyframe chain with a jump at step 60 and ``closures`` (the first joins the
+    pieces), and a fit that keeps the jump and cuts the step ``cut`` instead, both suspect:
+    ``(i, j, R, odometry, rotations, inlier, suspects)``."""
     i, j, R, odometry = _chain_with_closures(100, closures, broken=60)
-    tree = np.r_[np.setdiff1d(np.arange(99), [65]), [99]]  # odometry but 65, closure (10, 90)
-    rot = tree_rotations(i, j, R, tree, 100)
-    inlier = np.ones(i.size, bool)
-    inlier[65] = False
-    suspects = OdometrySuspects(np.isin(np.arange(i.size), [60, 65]),
-                                np.arange(i.size) == 60)
+    tree = np.r_[np.setdiff1d(np.arange(99), [cut]), [99]]  # odometry but the cut, a closure
+    inlier = np.arange(i.size) != cut
+    suspects = OdometrySuspects(np.isin(np.arange(i.size), [60, cut]), np.arange(i.size) == 60)
+    return i, j, R, odometry, tree_rotations(i, j, R, tree, 100), inlier, suspects
+
+
+def test_a_cut_no_closure_tells_from_a_jump_moves_onto_it() -> None:
+    # Step 60 a jump; a fit that keeps it and cuts step 65 instead (nodes 61-65 turned with
+    # the jump; no closure ends on them): the cut moves onto the jump.
+    closures = [(10, 90), (20, 80), (50, 60), (66, 95)]
+    i, j, R, odometry, rot, inlier, suspects = _fit_cutting(closures, cut=65)
     moved, kept = cuts_onto_jumps(rot, i, j, R, odometry, inlier, suspects)
     assert np.flatnonzero(~kept).tolist() == [60]
     residual = np.degrees(residual_angles(moved, i, j, R))
@@ -116,22 +123,14 @@ def test_a_cut_no_closure_tells_from_a_jump_moves_onto_it() -> None:
     assert np.flatnonzero(~inlier).tolist() == [65]  # (the input is not changed)
     # The same from the other side: the fit cuts step 55, the jump at 60 kept with the
     # nodes 56-60 (no closure ends on them).
-    i2, j2, R2, odo2 = _chain_with_closures(100, [(10, 90), (20, 80), (55, 99)], broken=60)
-    rot2 = tree_rotations(i2, j2, R2, np.r_[np.setdiff1d(np.arange(99), [55]), [99]], 100)
-    inlier2 = np.ones(i2.size, bool)
-    inlier2[55] = False
-    suspects2 = OdometrySuspects(np.isin(np.arange(i2.size), [55, 60]),
-                                 np.arange(i2.size) == 60)
+    i2, j2, R2, odo2, rot2, inlier2, suspects2 = _fit_cutting(
+        [(10, 90), (20, 80), (55, 99)], cut=55)
     moved2, kept2 = cuts_onto_jumps(rot2, i2, j2, R2, odo2, inlier2, suspects2)
     assert np.flatnonzero(~kept2).tolist() == [60]
     assert np.all(residual_angles(moved2, i2, j2, R2)[kept2] < 1e-8)
-    # A closure ending between the two tells them apart: nothing moves.
     # A closure the fit keeps ending between the two tells them apart: nothing moves. One
     # it rejects does not (it costs its cap either way).
-    i3, j3, R3, odo3 = _chain_with_closures(100, [*closures, (63, 85)], broken=60)
-    rot3 = tree_rotations(i3, j3, R3, tree, 100)
-    inlier3 = np.r_[inlier, True]
-    suspects3 = OdometrySuspects(np.r_[suspects.edges, False], np.r_[suspects.jumps, False])
+    i3, j3, R3, odo3, rot3, inlier3, suspects3 = _fit_cutting([*closures, (63, 85)], cut=65)
     moved3, kept3 = cuts_onto_jumps(rot3, i3, j3, R3, odo3, inlier3, suspects3)
     assert np.array_equal(kept3, inlier3) and np.array_equal(moved3, rot3)
     inlier3[-1] = False
