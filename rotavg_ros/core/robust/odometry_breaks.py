@@ -30,10 +30,10 @@ steps, seed 0: 50.9 deg mean error). The suspects:
 
 A suspect is only that: the verification re-solves with the suspects as ordinary edges and
 keeps that fit only where it explains the data clearly better
-(:func:`~.verify.robust_resolve`). Where no loop closure ends between a suspect that fit
-cut and a jump it kept, the closures cannot tell the two cuts apart, and the fit leaves
-out the jump instead (:func:`cuts_onto_jumps`): a cut that is only a misfit costs more in
-that comparison than a jump's.
+(:func:`~.verify.robust_resolve`). Where no loop closure that fit keeps ends between a
+suspect it cut and a jump it kept, the closures cannot tell the two cuts apart, and the fit
+leaves out the jump instead (:func:`cuts_onto_jumps`): a cut that is only a misfit costs
+more in that comparison than a jump's.
 
 Conventions: odometry edges join consecutive node indices; ``R_ij ~= R_i R_j^T``.
 """
@@ -138,8 +138,9 @@ def cuts_onto_jumps(rotations: FloatArray, i: IntArray, j: IntArray, R: FloatArr
     input is not changed."""
     rot, kept = rotations.copy(), inlier.copy()
     num_nodes = rot.shape[0]
-    closure_end = np.zeros(num_nodes, bool)  # (a closure the fit rejects costs its cap
-    kept_closure = ~odometry & inlier  # wherever the nodes between lie: no say)
+    # Nodes a kept closure ends on (a rejected one costs its cap wherever they lie: no say).
+    kept_closure = ~odometry & inlier
+    closure_end = np.zeros(num_nodes, bool)
     closure_end[i[kept_closure]] = True
     closure_end[j[kept_closure]] = True
     step_from = np.full(num_nodes, -1)  # step_from[k]: the odometry edge k -- k+1
