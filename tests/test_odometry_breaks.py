@@ -48,10 +48,11 @@ def test_a_jump_is_a_step_far_above_the_usual_one() -> None:
 
 
 def test_the_closures_across_a_rejected_jump_point_at_it() -> None:
-    # 100 keyframes, jumps at steps 30 and 97: two jumps in 99 steps are not rare
-    # (RARE_JUMPS), so only pointing or a misfit makes a suspect. One closure crosses 97.
+    # 100 keyframes, jumps at steps 30 and 96-98: four jumps in 99 steps are not rare
+    # (RARE_JUMPS, RARE_JUMPS_AT_LEAST), so only pointing or a misfit makes a suspect. One
+    # closure crosses 96-98.
     closures = [(5, 70), (10, 80), (20, 90), (50, 95), (55, 99)]
-    i, j, R, odometry = _chain_with_closures(100, closures, broken=[30, 97])
+    i, j, R, odometry = _chain_with_closures(100, closures, broken=[30, 96, 97, 98])
     inlier = np.ones(i.size, bool)
     inlier[99:102] = False  # the three closures across step 30, as a trusting fit leaves them
     none = np.zeros(i.size, bool)
@@ -63,7 +64,7 @@ def test_the_closures_across_a_rejected_jump_point_at_it() -> None:
     two[101] = True
     assert not suspect_odometry(100, i, j, R, odometry, two, none).edges.any()
     kept_across = [*closures, (25, 40)]
-    i2, j2, R2, odo2 = _chain_with_closures(100, kept_across, broken=[30, 97])
+    i2, j2, R2, odo2 = _chain_with_closures(100, kept_across, broken=[30, 96, 97, 98])
     inlier2 = np.ones(i2.size, bool)
     inlier2[99:102] = False
     assert not suspect_odometry(100, i2, j2, R2, odo2, inlier2,
@@ -71,7 +72,7 @@ def test_the_closures_across_a_rejected_jump_point_at_it() -> None:
     # A step the closures point at that is no jump is no suspect (a group of consistent
     # false closures points the same way at true steps); a misfit step always is, and is
     # no jump.
-    i3, j3, R3, odo3 = _chain_with_closures(100, closures, broken=[97, 98])
+    i3, j3, R3, odo3 = _chain_with_closures(100, closures, broken=[95, 96, 97, 98])
     misfit = np.zeros(i3.size, bool)
     misfit[12] = True
     found = suspect_odometry(100, i3, j3, R3, odo3, inlier, misfit)
@@ -86,13 +87,17 @@ def test_where_jumps_are_rare_every_jump_is_suspect() -> None:
                              np.zeros(i.size, bool))
     assert np.flatnonzero(found.edges).tolist() == [120]
     assert np.flatnonzero(found.jumps).tolist() == [120]
-    # One jump is rare on any chain (50 keyframes: 1% of 49 steps is below one); two on
-    # 150 keyframes are not.
+    # Up to three jumps are rare on any chain (50 keyframes: 1% of 49 steps is below one);
+    # four on 150 keyframes are not.
     i, j, R, odometry = _chain_with_closures(50, [(10, 40)], broken=20)
     found = suspect_odometry(50, i, j, R, odometry, np.ones(i.size, bool),
                              np.zeros(i.size, bool))
     assert np.flatnonzero(found.jumps).tolist() == [20]
-    i, j, R, odometry = _chain_with_closures(150, [(10, 140)], broken=[60, 100])
+    i, j, R, odometry = _chain_with_closures(50, [(5, 45)], broken=[10, 20, 30])
+    found = suspect_odometry(50, i, j, R, odometry, np.ones(i.size, bool),
+                             np.zeros(i.size, bool))
+    assert np.flatnonzero(found.jumps).tolist() == [10, 20, 30]
+    i, j, R, odometry = _chain_with_closures(150, [(10, 140)], broken=[40, 60, 100, 120])
     assert not suspect_odometry(150, i, j, R, odometry, np.ones(i.size, bool),
                                 np.zeros(i.size, bool)).edges.any()
 
