@@ -565,6 +565,20 @@ def broken_odometry_case(name: str, base: RegimeCase, *, steps: int,
     return replace(base, name=name, R=R, inlier=inlier, description=desc)
 
 
+def biased_odometry_case(name: str, base: RegimeCase, *, bias_deg: float) -> RegimeCase:
+    """``base`` with every odometry measurement (consecutive ids) turned ``bias_deg``
+    further about the z axis of its frame ``i`` (``R_ij <- Rz(bias) R_ij``), as a gyro's yaw
+    bias turns an integrated odometry; the loop closures stay as measured, and the true /
+    false split stays (a bias is no false edge: the oracle solves the biased odometry too).
+    What this tests: odometry whose error grows along the chain linearly, where the loop
+    tests assume a random walk's square root."""
+    step = np.abs(base.i - base.j) == 1
+    R = base.R.copy()
+    R[step] = rotation_about_axis(np.array([0.0, 0.0, 1.0]), np.radians(bias_deg)) @ R[step]
+    desc = f"{base.description or base.name}, odometry biased {bias_deg:g} deg a step"
+    return replace(base, name=name, R=R, description=desc)
+
+
 def identity_false_case(name: str, base: RegimeCase) -> RegimeCase:
     """``base`` with each false edge the identity rotation. What this tests: a front end
     that reports identity where a match failed; identity edges agree with each other around

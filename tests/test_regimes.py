@@ -149,6 +149,20 @@ def test_identity_and_reversed_cases_draw_what_they_say() -> None:
     assert np.allclose(a.R, b.R, atol=1e-15)
 
 
+def test_biased_odometry_case_turns_every_step_the_same_way() -> None:
+    """Each odometry measurement turned by the bias about its frame's z axis, the closures
+    and the true / false split as they were."""
+    base = rc.chain_case("test/chain300", 300, closures=30, false_random=0.2)
+    biased = rc.biased_odometry_case("test/biased", base, bias_deg=0.5)
+    step = np.abs(base.i - base.j) == 1
+    assert np.array_equal(biased.R[~step], base.R[~step])
+    assert biased.inlier is not None and base.inlier is not None
+    assert np.array_equal(biased.inlier, base.inlier)
+    turn = biased.R[step] @ np.swapaxes(base.R[step], 1, 2)  # Rz(bias), every step
+    angle = np.degrees(np.arctan2(turn[:, 1, 0], turn[:, 0, 0]))
+    assert np.allclose(angle, 0.5) and np.allclose(turn[:, 2, 2], 1.0)
+
+
 def test_chain_has_no_triangles_and_odometry() -> None:
     case = _tiny_chain()
     assert rc.triangle_count(case.num_nodes, case.i, case.j) == 0
