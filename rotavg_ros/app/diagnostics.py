@@ -88,6 +88,12 @@ def diagnostic_values(
         if result.num_untested:
             level = Level.WARN
             problems.append(f"{result.num_untested} loop closure(s) could not be tested")
+        closures, left_out = loop_closures_left_out(result)
+        values["loop_closures_left_out"] = f"{left_out} / {closures}"
+        if closures >= MIN_CLOSURES_TO_WARN and left_out > settings.left_out_warn_share * closures:
+            level = Level.WARN
+            problems.append(f"{left_out} of {closures} loop closures left out: the answer "
+                            "rests on the few that agree")
         if math.isfinite(median) and median > settings.residual_warn_deg:
             level = Level.WARN
             problems.append(
@@ -116,6 +122,21 @@ def diagnostic_values(
     else:
         message = f"{len(result.node_ids)} nodes solved"
     return level, message, values
+
+
+MIN_CLOSURES_TO_WARN = 10
+"""The share of loop closures left out warns only where there are at least this many: on a
+few, one wrong match is a large share."""
+
+
+def loop_closures_left_out(result: SolveResult) -> tuple[int, int]:
+    """``(loop closures, those the solution leaves out)``: the loop closures are the edges
+    not trusted as odometry (every edge of a view graph), the odometry edges the solver
+    stopped trusting apart (reported on their own)."""
+    odometry = result.num_trusted_odometry + result.num_distrusted_odometry
+    closures = int(np.asarray(result.edge_inlier).size) - odometry
+    left_out = int(np.count_nonzero(~np.asarray(result.edge_inlier)))
+    return closures, left_out - result.num_distrusted_odometry
 
 
 def describe_detached(result: SolveResult) -> str:

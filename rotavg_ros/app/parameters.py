@@ -198,6 +198,12 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         "Diagnostics turn WARN when the median inlier residual exceeds this (deg).",
         range=FloatRange(0.0, 180.0)),
     ParameterSpec(
+        "left_out_warn_share", 0.6,
+        "Diagnostics turn WARN when the solution leaves out more than this share of the "
+        "loop closures (edges not trusted as odometry; at least 10 of them): the answer then "
+        "rests on the few that agree.",
+        range=FloatRange(0.0, 1.0)),
+    ParameterSpec(
         "qos_depth", 10000,
         "KEEP_LAST depth of the edge subscriptions.",
         range=IntRange(1, 1_000_000), read_only=True),
@@ -255,6 +261,8 @@ class Settings:
     adapter: AdapterConfig
     solver: SolverOptions
     warm_start: bool = True
+    left_out_warn_share: float = 0.6
+    """Diagnostics WARN above this share of loop closures left out (``left_out_warn_share``)."""
 
 
 def solver_options_from_parameters(p: Mapping[str, Any]) -> SolverOptions:
@@ -310,6 +318,7 @@ def settings_from_parameters(
         ),
         solver=options,
         warm_start=bool(p["warm_start"]),
+        left_out_warn_share=float(p["left_out_warn_share"]),
     )
 
 

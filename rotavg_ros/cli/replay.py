@@ -63,7 +63,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
 
 NODE_FLAGS = ("world_frame", "anchor_frame", "repeat_policy", "quaternion_tolerance",
               "reference_variance", "min_weight", "max_weight", "marker_spacing",
-              "residual_warn_deg")
+              "residual_warn_deg", "left_out_warn_share")
 """Node parameters with a flag of their own (``--world-frame`` ...), made from the parameter
 table; ``--no-markers`` and ``--no-warm-start`` set ``publish_markers`` and ``warm_start``,
 the solver flags the solver parameters."""
