@@ -165,17 +165,6 @@ def log_likelihood(r: FloatArray, model: NoiseModel) -> float:
     return float(np.sum(np.logaddexp(a, b)))
 
 
-def outlier_crossing(sigma: float, inlier_fraction: float, cap: float, axes: int = 3,
-                     ) -> float:
-    """The residual angle (rad) above the inlier mode where an edge becomes more likely an
-    outlier than an inlier under a mixture of per-axis scale ``sigma``, ``inlier_fraction``
-    and ``axes`` (as :func:`fit_noise` fits it); ``cap`` where it never does (no outliers,
-    or not below ``cap``)."""
-    if not 0.0 < inlier_fraction < 1.0 or not sigma > 0.0:
-        return cap
-    return _crossing(sigma, inlier_fraction, cap, axes)
-
-
 def _crossing(s: float, p: float, cap: float, axes: int = 3) -> float:
     """Smallest angle above the inlier mode (half-normal: above one scale) where outliers
     become more likely; <= cap."""

@@ -22,8 +22,7 @@ takes the solution, not the tree, as the reference, and lets the data set the th
 4. **GNC at the data's threshold.** Where there is odometry and step 3 found outliers,
    and always on an odometry chain with sparse loop closures (redundancy below
    ``chain_below``, where false closures can bend step 3's fit until it shows none):
-   GNC-TLS again at ``GNC_SIGMAS`` noise scales, or fewer where step 3's mixture makes an
-   edge more likely an outlier already (:func:`tight_sigmas`; at most the initial threshold)
+   GNC-TLS again at ``GNC_SIGMAS`` noise scales (at most the initial threshold)
    from step 3's solution and from the odometry chain, the odometry edges
    (``known_inlier``) trusted from here on (known inliers, uncapped in the choice cost);
    where those disagree, always on such a chain and where the loop closures are few
@@ -104,7 +103,6 @@ from rotavg_ros.core.robust.noise import (
     log_likelihood,
     looks_gaussian,
     noise_axes,
-    outlier_crossing,
     redundancy,
 )
 from rotavg_ros.core.robust.odometry_breaks import (
@@ -122,9 +120,8 @@ CHOICE_SIGMAS = 3.0
 inlier's residual angle is 3.0 sigma; on a planar problem, one noise axis, the 99.7th)."""
 
 GNC_SIGMAS = 4.0
-"""Threshold of the second GNC-TLS pass, in fitted noise scales, at most (an inlier's
-residual angle exceeds 4.0 sigma with probability about 0.1%; on a planar problem 0.006%);
-fewer where the fitted mixture's crossing is (:func:`tight_sigmas`)."""
+"""Threshold of the second GNC-TLS pass, in fitted noise scales (an inlier's residual angle
+exceeds 4.0 sigma with probability about 0.1%; on a planar problem 0.006%)."""
 
 TIGHT_START_MU = 1.0 / GNC_SIGMAS ** 2
 """The surrogate at which the second pass's GNC from the first pass's solution starts (at
@@ -645,23 +642,6 @@ def robust_resolve(
                        restarted is not None, runs_left_out, gaussian, distrusted)
 
 
-def tight_sigmas(sigma: float, noise: NoiseModel) -> float:
-    """The tight pass's threshold in noise scales at the per-axis scale ``sigma``:
-    ``GNC_SIGMAS``, or fewer where step 3's mixture (``noise``: its inlier fraction and
-    axes) makes a residual more likely an outlier's already
-    (:func:`~.noise.outlier_crossing`).
-
-    Where the 4-scale window is well inside the inlier/outlier crossing (three axes, a few
-    degrees of noise: 4.5-5.5 scales) nothing changes. The crossing comes below 4 scales
-    where a wrong edge is likely next to the inlier density: on a planar problem (one axis:
-    a wrong heading is uniform on the circle, 2.6-3.8 scales at 1-5 deg) and on three axes
-    at 10-20 deg. There a false closure that the odometry's drift lets into the wider
-    window bends the fit for every edge around it (a planar grid walk at 5 deg, 20% false:
-    docs/benchmarks.md, "The tight pass at the mixture's crossing")."""
-    return min(GNC_SIGMAS, outlier_crossing(sigma, noise.inlier_fraction, GNC_SIGMAS * sigma,
-                                            noise.axes) / sigma) if sigma > 0.0 else GNC_SIGMAS
-
-
 @dataclass(frozen=True)
 class TightFit:
     """Step 4's result: a least-squares fit and the edges it rests on, as step 3 gives it."""
@@ -681,13 +661,12 @@ def _tight_pass(
     chain_like: bool,
 ) -> TightFit:
     """Step 4 of the module docstring from step 3's fit ``step3`` (rotations, inliers,
-    noise, standardized residuals): GNC at :func:`tight_sigmas` noise scales with the ``known``
+    noise, standardized residuals): GNC at ``GNC_SIGMAS`` noise scales with the ``known``
     edges trusted, from step 3's solution, each of ``chain_starts`` and, where called for,
     pairwise-consistent closure sets; then runs of closures left out."""
     rot, inlier, noise, t = step3
     inlier = inlier | known
-    sigmas = tight_sigmas(noise.sigma, noise)
-    threshold = np.minimum(sigmas * noise.sigma / np.sqrt(w), initial_threshold)
+    threshold = np.minimum(GNC_SIGMAS * noise.sigma / np.sqrt(w), initial_threshold)
     # GNC at a tight threshold depends on its start: from step 3's solution and from
     # the odometry chain (which no false closure bends), the lower cost wins; its
     # inliers then settle. Where those disagree, the result depends on the start, and
@@ -697,7 +676,7 @@ def _tight_pass(
     # GNC's own objective, their truncated squares (:func:`truncated_squares`), not by
     # the choice's L1 cost.
     tls = functools.partial(truncated_squares, i=i, j=j, R=R, w=w,
-                            c=sigmas * noise.sigma, trusted=known)
+                            c=GNC_SIGMAS * noise.sigma, trusted=known)
     candidates: list[tuple[float, FloatArray, BoolArray]] = []
 
     def tight_from(*begins: tuple[FloatArray, float]) -> None:
@@ -748,10 +727,9 @@ def _tight_pass(
         by_loops = True
     if scales and min(scales) < RESCALE_BELOW * noise.sigma:
         rescaled = min(scales)
-        sigmas = tight_sigmas(rescaled, noise)
-        threshold = np.minimum(sigmas * rescaled / np.sqrt(w), initial_threshold)
+        threshold = np.minimum(GNC_SIGMAS * rescaled / np.sqrt(w), initial_threshold)
         tls = functools.partial(truncated_squares, i=i, j=j, R=R, w=w,
-                                c=sigmas * rescaled, trusted=known)
+                                c=GNC_SIGMAS * rescaled, trusted=known)
         candidates = [(tls(c[1]), c[1], c[2]) for c in candidates]
         from_every_start(fits)
     else:
