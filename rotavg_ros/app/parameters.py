@@ -258,11 +258,10 @@ class Settings:
     publish_markers: bool
     marker_spacing: float
     residual_warn_deg: float
+    left_out_warn_share: float
     adapter: AdapterConfig
     solver: SolverOptions
     warm_start: bool = True
-    left_out_warn_share: float = 0.6
-    """Diagnostics WARN above this share of loop closures left out (``left_out_warn_share``)."""
 
 
 def solver_options_from_parameters(p: Mapping[str, Any]) -> SolverOptions:
@@ -309,6 +308,7 @@ def settings_from_parameters(
         publish_markers=bool(p["publish_markers"]),
         marker_spacing=float(p["marker_spacing"]),
         residual_warn_deg=float(p["residual_warn_deg"]),
+        left_out_warn_share=float(p["left_out_warn_share"]),
         adapter=AdapterConfig(
             quaternion_tolerance=float(p["quaternion_tolerance"]),
             reference_variance=float(p["reference_variance"]),
@@ -318,7 +318,6 @@ def settings_from_parameters(
         ),
         solver=options,
         warm_start=bool(p["warm_start"]),
-        left_out_warn_share=float(p["left_out_warn_share"]),
     )
 
 
