@@ -26,18 +26,13 @@ from collections.abc import Callable, Iterator
 
 from benchmarks.datasets import find_shared_dir
 from benchmarks.regime_cases import RegimeCase, biased_odometry_case, chain_case, slam_case
-from benchmarks.short_chains import PEERS, solve
+from benchmarks.short_chains import PEERS, seed_range, solve
 
 CHAINS = (("chain/300/rand20", 300, 16, 0.20, 0.0), ("chain/1000/rand40", 1000, 36, 0.40, 0.0),
           ("chain/1000/clean", 1000, 36, 0.0, 0.0), ("chain/3000/mixed35", 3000, 100, 0.15, 0.20))
 """The suite's chains (:func:`benchmarks.regime_cases.all_cases`) and a clean one: name,
 keyframes, true closures, random and grouped false shares."""
 SLAM = (("slam/parking-garage/rand5", "parking-garage"), ("slam/sphere2500/rand5", "sphere2500"))
-
-
-def _range(text: str) -> list[int]:
-    lo, _, hi = text.partition("-")
-    return list(range(int(lo), int(hi or lo) + 1))
 
 
 def bases(seed: int, odometry_noise: float, slam: bool) -> Iterator[Callable[[], RegimeCase]]:
@@ -67,7 +62,7 @@ def main() -> int:
     if not args.no_slam and find_shared_dir() is None:
         print("shared data not found (../shared or $ROTAVG_SHARED): chains only")
     total = off_median = off_mean = 0
-    for seed in _range(args.seeds):
+    for seed in seed_range(args.seeds):
         for build in bases(seed, args.odometry_noise, not args.no_slam):
             base = build()
             for bias in biases:

@@ -51,7 +51,8 @@ class Row:
     note: str
 
 
-def _seeds(text: str) -> list[int]:
+def seed_range(text: str) -> list[int]:
+    """Draws from ``"A-B"`` (inclusive) or ``"A"``."""
     lo, _, hi = text.partition("-")
     return list(range(int(lo), int(hi or lo) + 1))
 
@@ -83,7 +84,7 @@ def main() -> int:
     for model in ("folded", "tangent"):
         for nodes in (50, 100):
             for label, kind, false in kinds:
-                for seed in _seeds(args.seeds):
+                for seed in seed_range(args.seeds):
                     name = f"short/{nodes}/{label}"
                     try:
                         case = chain_case(name, nodes, closures=TRUE_CLOSURES, seed=100 + seed,
