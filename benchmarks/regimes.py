@@ -107,6 +107,8 @@ def solve_ours(case: RegimeCase, keep: np.ndarray | None, flat: dict[str, Any],
             note += f", {res.num_trusted_odometry} odometry trusted"
         if res.num_runs_left_out:
             note += f", {res.num_runs_left_out} closure runs left out"
+        if res.odometry_bias_deg_per_step:
+            note += f", odometry bias {res.odometry_bias_deg_per_step:.3f} deg a step removed"
     return rot, wall, note
 
 

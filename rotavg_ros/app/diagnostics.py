@@ -72,6 +72,7 @@ def diagnostic_values(
             "verification": result.verification or "off",
             "noise_sigma_deg": result.noise_sigma_deg,
             "odometry_weight": result.odometry_weight,
+            "odometry_bias_deg_per_step": result.odometry_bias_deg_per_step,
             "untested_loop_closures": result.num_untested,
             "depth": result.depth,
             "residual_median_deg": median,

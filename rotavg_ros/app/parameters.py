@@ -135,6 +135,14 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         "again with the odometry weighted by their ratio (diagnostic odometry_weight). "
         "false: the weights stay as given."),
     ParameterSpec(
+        "odometry_bias", _SOLVER.verify.odometry_bias,
+        "Where the graph has odometry and at least 8 loop closures on one unbroken piece of "
+        "it: the default profile estimates a systematic bias of the odometry (one rotation "
+        "a step, a gyro's bias) from the loops the closures close over it and, where the "
+        "corrected loops read below half the uncorrected noise scale, removes it from the "
+        "odometry before the solve (diagnostic odometry_bias_deg_per_step). false: the "
+        "odometry stays as measured."),
+    ParameterSpec(
         "mode", _SOLVER.mode,
         "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "
         "L-BFGS, for chain-like SLAM graphs) or auto (by mean degree).",
@@ -272,6 +280,7 @@ def solver_options_from_parameters(p: Mapping[str, Any]) -> SolverOptions:
         mode=str(p["mode"]),
         odometry=str(p["odometry"]),
         class_noise=bool(p["class_noise"]),
+        odometry_bias=bool(p["odometry_bias"]),
         depths=tuple(int(d) for d in p["depths"]),
         iterations=int(p["iterations"]),
         sigma=float(p["sigma"]),

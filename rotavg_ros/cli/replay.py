@@ -106,6 +106,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
         "mode": args.mode,
         "odometry": args.odometry,
         "class_noise": not args.no_class_noise,
+        "odometry_bias": not args.no_odometry_bias,
         "warm_start": not args.no_warm_start,
         "depths": list(options.dense.depths),
     })

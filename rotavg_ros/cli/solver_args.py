@@ -34,6 +34,12 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    "noise scale for the odometry and one for the loop closures and, where "
                    "they differ beyond doubt, solves again with the odometry weighted by "
                    "their ratio")
+    g.add_argument("--no-odometry-bias", action="store_true",
+                   help="keep the odometry as measured: by default, where the graph has "
+                   "odometry and at least 8 loop closures on one piece of it, the default "
+                   "profile estimates a systematic bias of the odometry (one rotation a "
+                   "step) from the loops the closures close over it and removes it where "
+                   "the corrected loops read below half the uncorrected noise scale")
     g.add_argument("--mode", default=d.mode, choices=("auto", "dense", "sparse"),
                    help="dense: the paper's DMF; sparse: chordal start + Huber + L-BFGS for "
                    "chain-like SLAM graphs; auto: by mean degree (default %(default)s)")
@@ -77,7 +83,8 @@ def options_from_args(args: argparse.Namespace) -> SolverOptions:
     return SolverOptions.for_profile(
         getattr(args, "profile", "default"),
         mode=args.mode, odometry=getattr(args, "odometry", "auto"),
-        class_noise=not getattr(args, "no_class_noise", False), depths=depths,
+        class_noise=not getattr(args, "no_class_noise", False),
+        odometry_bias=not getattr(args, "no_odometry_bias", False), depths=depths,
         iterations=args.iterations, tolerance=args.tolerance,
         dtype=args.dtype, lr=args.lr, sigma=args.sigma,
         seed=args.seed, device=args.device,

@@ -392,6 +392,17 @@ class VerifyOptions:
     loop's misclosure over both alike (parking-garage, odometry at 0.5 deg and closures at
     3 deg, unweighted: 2.55 -> 1.38 deg median; docs/benchmarks.md). Weights that differ
     between the classes are trusted as they are. Off: the weights stay as given."""
+    odometry_bias: bool = field(default=True, metadata=_flat("odometry_bias"))
+    """Where there is odometry (``odometry``) and at least 8 loop closures lie on one
+    unbroken piece of it: estimate a systematic bias of the odometry (one rotation a step,
+    in the step's first frame: a gyro's bias) from the loops the closures close over it,
+    and remove it from every odometry measurement before the solve where the corrected
+    loops read below half the noise scale of the uncorrected ones
+    (:mod:`rotavg_ros.core.robust.odometry_bias`; diagnostic
+    ``odometry_bias_deg_per_step``). A bias makes the loop errors grow with the loop's
+    length, where the loop tests assume a random walk's square root, and they reject true
+    closures (chains of 1,000-3,000 keyframes at 0.5-1 deg a step: up to 70 deg mean error
+    without it; docs/benchmarks.md). Off: the odometry stays as measured."""
 
 
 @dataclass

@@ -81,6 +81,11 @@ class SolveResult:
     the solution's inliers where the input weights did not tell the two apart and their
     noise differed beyond doubt (largest component; option ``class_noise``,
     :mod:`rotavg_ros.core.robust.class_noise`); 1 where not used."""
+    odometry_bias_deg_per_step: float = 0.0
+    """The odometry's systematic bias, degrees a step, estimated from the loop closures and
+    removed from the odometry before the solve (largest component; option
+    ``odometry_bias``, :mod:`rotavg_ros.core.robust.odometry_bias`); 0 where none was.
+    ``residuals_deg`` are against the measurements as given, bias included."""
 
 
 def components_warning(result: SolveResult) -> str | None:

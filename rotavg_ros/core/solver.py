@@ -33,6 +33,7 @@ from rotavg_ros.core.robust.l1_choice import (
     fold_plan,
 )
 from rotavg_ros.core.robust.noise import NOISE_AXES, noise_axes, redundancy
+from rotavg_ros.core.robust.odometry_bias import estimate_odometry_bias, remove_odometry_bias
 from rotavg_ros.core.robust.verify import (
     RobustSolve,
     VerifyOutcome,
@@ -84,6 +85,9 @@ class ComponentSolution:
     odometry_weight: float = 1.0
     """Weight of the odometry edges relative to the loop closures that the solution was
     fitted with, estimated from the data (option ``class_noise``); 1 where not used."""
+    odometry_bias_deg: float = 0.0
+    """The odometry's bias (degrees a step) removed before the solve (option
+    ``odometry_bias``); 0 where none was."""
     inlier_threshold: float = math.inf
     """The verification's inlier threshold on standardized residuals (radians of a
     unit-weight edge; inf: not run)."""
@@ -220,6 +224,7 @@ class RotationAverager:
             iterations_by_depth=out.iterations_by_depth,
             pruned_depths=out.pruned_depths,
             odometry_weight=out.odometry_weight,
+            odometry_bias_deg_per_step=out.odometry_bias_deg,
         )
 
     def solve_component(
@@ -260,7 +265,19 @@ class RotationAverager:
         """:meth:`solve_component` within its noise model's axes."""
         opt = self.options
         odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
+        bias = None
+        if opt.verify.enabled and opt.verify.odometry_bias and odometry.any():
+            bias = estimate_odometry_bias(n, i, j, R, w, odometry)
+        if bias is not None and bias.applied:
+            self._say(f"odometry bias {bias.degrees_per_step:.3f} deg a step removed (the "
+                      f"loops read {math.degrees(bias.scale_before):.2f} deg per axis with "
+                      f"it, {math.degrees(bias.scale_after):.2f} without)")
+            R = remove_odometry_bias(i, j, R, odometry, bias.beta)
+            removed = bias.degrees_per_step
+        else:
+            removed = 0.0
         sol = self._solve_once(n, i, j, R, w, odometry, initial, initial_depth)
+        sol = replace(sol, odometry_bias_deg=removed)
         if not (opt.verify.enabled and opt.verify.class_noise and sol.verification
                 and sol.verification != "failed" and i.size):
             return sol
@@ -278,7 +295,7 @@ class RotationAverager:
                   f"solving again with the odometry weighted {scales.factor:.3g} x")
         again = self._solve_once(n, i, j, R, w * np.where(odometry, scales.factor, 1.0),
                                  odometry, initial, initial_depth)
-        return replace(again, odometry_weight=scales.factor)
+        return replace(again, odometry_weight=scales.factor, odometry_bias_deg=removed)
 
     def _solve_once(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
@@ -780,6 +797,9 @@ class ArraySolution:
     odometry_weight: float = 1.0
     """Weight of the odometry relative to the loop closures estimated from the data (largest
     component; option ``class_noise``); 1 where not used."""
+    odometry_bias_deg: float = 0.0
+    """The odometry's bias removed before the solve, degrees a step (largest component;
+    option ``odometry_bias``); 0 where none was."""
 
 
 def average_rotations(
@@ -816,7 +836,7 @@ def average_rotations(
     depth, costs, iterations, best_size = 0, {}, {}, 0
     pruned: tuple[int, ...] = ()
     noise, verification, untested, relocalized, trusted = math.nan, "", 0, 0, 0
-    runs_left_out, distrusted, odometry_weight = 0, 0, 1.0
+    runs_left_out, distrusted, odometry_weight, odometry_bias = 0, 0, 1.0, 0.0
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
         comp_anchor.append(anchor if label == 0 and anchor in nodes else int(nodes[0]))
@@ -854,10 +874,11 @@ def average_rotations(
             iterations, pruned = sol.iterations_by_depth, sol.pruned_depths
             noise, verification = sol.noise_sigma_deg, sol.verification
             odometry_weight = sol.odometry_weight
+            odometry_bias = sol.odometry_bias_deg
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
                          time.perf_counter() - t0, iterations, filter_kept, noise,
                          verification, untested, relocalized, trusted, pruned, runs_left_out,
-                         distrusted, odometry_weight)
+                         distrusted, odometry_weight, odometry_bias)
 
 
 def _folds_keep_tree(n: int, i: IntArray, j: IntArray, seed: int, tree: BoolArray) -> bool:
