@@ -393,7 +393,8 @@ class VerifyOptions:
     3 deg, unweighted: 2.55 -> 1.38 deg median; docs/benchmarks.md). Weights that differ
     between the classes are trusted as they are. Off: the weights stay as given."""
     odometry_bias: bool = field(default=True, metadata=_flat("odometry_bias"))
-    """Where there is odometry (``odometry``) and at least 8 loop closures lie on one
+    """On an odometry chain with sparse loop closures (``odometry``; the redundancy of all
+    its edges below ``least_squares_below_redundancy``) with at least 8 closures on one
     unbroken piece of it: estimate a systematic bias of the odometry (one rotation a step,
     in the step's first frame: a gyro's bias) from the loops the closures close over it,
     and remove it from every odometry measurement before the solve where the corrected
