@@ -136,12 +136,13 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         "false: the weights stay as given."),
     ParameterSpec(
         "odometry_bias", _SOLVER.verify.odometry_bias,
-        "Where the graph has odometry and at least 8 loop closures on one unbroken piece of "
-        "it: the default profile estimates a systematic bias of the odometry (one rotation "
-        "a step, a gyro's bias) from the loops the closures close over it and, where the "
-        "corrected loops read below half the uncorrected noise scale, removes it from the "
-        "odometry before the solve (diagnostic odometry_bias_deg_per_step). false: the "
-        "odometry stays as measured."),
+        "On an odometry chain with sparse loop closures (redundancy below 0.15) and at least "
+        "8 closures on one unbroken piece of it: the default profile estimates a systematic "
+        "bias of the odometry (one rotation a step, a gyro's bias) from the loops the "
+        "closures close over it and, where the loops show it beyond the odometry's own "
+        "drift in both halves of the trajectory, removes it from the odometry before the "
+        "solve (diagnostic odometry_bias_deg_per_step). false: the odometry stays as "
+        "measured."),
     ParameterSpec(
         "mode", _SOLVER.mode,
         "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "

@@ -35,11 +35,11 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    "they differ beyond doubt, solves again with the odometry weighted by "
                    "their ratio")
     g.add_argument("--no-odometry-bias", action="store_true",
-                   help="keep the odometry as measured: by default, where the graph has "
-                   "odometry and at least 8 loop closures on one piece of it, the default "
+                   help="keep the odometry as measured: by default, on an odometry chain "
+                   "with sparse loop closures and at least 8 on one piece of it, the default "
                    "profile estimates a systematic bias of the odometry (one rotation a "
                    "step) from the loops the closures close over it and removes it where "
-                   "the corrected loops read below half the uncorrected noise scale")
+                   "the loops show it beyond the odometry's own drift")
     g.add_argument("--mode", default=d.mode, choices=("auto", "dense", "sparse"),
                    help="dense: the paper's DMF; sparse: chordal start + Huber + L-BFGS for "
                    "chain-like SLAM graphs; auto: by mean degree (default %(default)s)")

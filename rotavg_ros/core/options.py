@@ -397,9 +397,10 @@ class VerifyOptions:
     its edges below ``least_squares_below_redundancy``) with at least 8 closures on one
     unbroken piece of it: estimate a systematic bias of the odometry (one rotation a step,
     in the step's first frame: a gyro's bias) from the loops the closures close over it,
-    and remove it from every odometry measurement before the solve where the corrected
-    loops read below half the noise scale of the uncorrected ones
-    (:mod:`rotavg_ros.core.robust.odometry_bias`; diagnostic
+    and remove it from every odometry measurement before the solve where the loops show it
+    beyond the odometry's own drift, in both halves of the trajectory (a generalized least
+    squares over the odometry the loops share; :mod:`rotavg_ros.core.robust.odometry_bias`;
+    diagnostic
     ``odometry_bias_deg_per_step``). A bias makes the loop errors grow with the loop's
     length, where the loop tests assume a random walk's square root, and they reject true
     closures (chains of 1,000-3,000 keyframes at 0.5-1 deg a step: up to 70 deg mean error
