@@ -124,8 +124,7 @@ class _Loops:
         # Pieces: nodes joined by odometry steps. Closures within one piece are testable.
         piece = np.concatenate([[0], np.cumsum(~self.has_step)]) if num_nodes else np.zeros(0)
         a, b = lo, np.maximum(i, j)
-        self.closures = np.flatnonzero(~odometry & (piece[a] == piece[b]) & (a != b))
-        c = self.closures
+        c = np.flatnonzero(~odometry & (piece[a] == piece[b]) & (a != b))
         self.a, self.b = a[c], b[c]
         self.Rab = np.where(forward[c, None, None], R[c], R[c].transpose(0, 2, 1))
         prefix = np.concatenate([[0.0], np.cumsum(inv_w)[:-1]])
@@ -138,7 +137,7 @@ class _Loops:
             spread = np.flatnonzero(ok)
             ok = np.zeros(ok.size, bool)
             ok[spread[np.linspace(0, spread.size - 1, MAX_LOOPS).astype(int)]] = True
-        self.closures, self.a, self.b = c[ok], self.a[ok], self.b[ok]
+        self.a, self.b = self.a[ok], self.b[ok]
         self.Rab, self.var, self.own = self.Rab[ok], var[ok], own[ok]
         self.pa, self.pb = prefix[self.a], prefix[self.b]
 
@@ -228,12 +227,12 @@ def estimate_odometry_bias(num_nodes: int, i: IntArray, j: IntArray, R: FloatArr
             with np.errstate(invalid="ignore"):
                 spread = np.sqrt(np.einsum("eij,jk,eik->e", J, cov, J))
             reach = spread < LINEAR_SPREAD
+    if not scale < TESTED_BELOW * before:
+        return OdometryBias(beta, False, before, scale)
     # The test refits by generalized least squares from the estimate and from zero (the
     # loops it takes are those consistent with its fit, so a start it cannot leave, such as
     # an estimate wandered off in a direction the loops do not tell, keeps its own); of the
     # two that pass, the one that explains more loops stands.
-    if not scale < TESTED_BELOW * before:
-        return OdometryBias(beta, False, before, scale)
     axes = noise_axes(R[odometry])
     passed = [t for t in (_tested(loops, beta, scale, axes), _tested(loops, zero, scale, axes))
               if t is not None]
@@ -255,9 +254,10 @@ def _tested(loops: _Loops, beta: FloatArray, after: float,
     covary by the odometry variance they share: a random walk's realized drift, which
     every loop over the same stretch repeats, is no bias. The GLS refit leaves a direction
     the loops do not tell at zero, where the loops' lower quantile, flat there, may have
-    wandered (a planar garage's roll and pitch: 0.6-0.9 deg a step). A bias is one rotation
-    a step along the whole trajectory; a group of mutually consistent false closures in one
-    place can be fitted by a rotation a step too, but only its own half shows it."""
+    wandered (a nearly planar garage's roll and pitch: up to 0.85 deg a step). A bias is
+    one rotation a step along the whole trajectory; a group of mutually consistent false
+    closures in one place can be fitted by a rotation a step too, but only its own half
+    shows it."""
     chi2 = CHI2_3_999 if axes == 3 else CHI2_1_999
     err0 = loops.errors(np.zeros(3))
     fitted, sigma, stat, kept = beta, after, 0.0, np.zeros(0, np.int64)
