@@ -46,6 +46,8 @@ from rotavg_ros.core.robust.closure_consistency import (
     CHI2_3_999,
     CHI2_3_Q25,
     LOOP_QUANTILE,
+    ClosureLoops,
+    closure_loops,
 )
 from rotavg_ros.core.robust.noise import NOISE_AXES, noise_axes
 from rotavg_ros.core.so3 import exp_map, log_map
@@ -106,10 +108,12 @@ class OdometryBias:
 
 
 class _Loops:
-    """The odometry steps oriented ``k -> k + 1`` and the closures' loops over them."""
+    """The odometry steps oriented ``k -> k + 1`` and the closures' loops over them: their
+    ends, variances and own ``1 / w`` as :func:`~.closure_consistency.closure_loops` gives
+    them (at most :data:`MAX_LOOPS`, those of finite variance)."""
 
     def __init__(self, num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
-                 w: FloatArray, odometry: BoolArray) -> None:
+                 odometry: BoolArray, loops: ClosureLoops) -> None:
         lo = np.minimum(i, j)
         forward = i < j
         self.steps = np.tile(np.eye(3), (max(num_nodes - 1, 0), 1, 1))
@@ -118,28 +122,19 @@ class _Loops:
         self.steps[lo[oe]] = np.where(forward[oe, None, None], R[oe],
                                       R[oe].transpose(0, 2, 1))
         self.has_step[lo[oe]] = True
-        inv_w = np.zeros(num_nodes)
-        with np.errstate(divide="ignore"):
-            inv_w[lo[oe]] = 1.0 / w[oe]
-        # Pieces: nodes joined by odometry steps. Closures within one piece are testable.
-        piece = np.concatenate([[0], np.cumsum(~self.has_step)]) if num_nodes else np.zeros(0)
-        a, b = lo, np.maximum(i, j)
-        c = np.flatnonzero(~odometry & (piece[a] == piece[b]) & (a != b))
-        self.a, self.b = a[c], b[c]
-        self.Rab = np.where(forward[c, None, None], R[c], R[c].transpose(0, 2, 1))
-        prefix = np.concatenate([[0.0], np.cumsum(inv_w)[:-1]])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            own = 1.0 / w[c]
-            var = prefix[self.b] - prefix[self.a] + own
+        with np.errstate(invalid="ignore"):
+            var = loops.pb - loops.pa + loops.own
         # (A zero weight on the way: an infinite variance, a loop that tells nothing.)
         ok = np.isfinite(var) & (var > 0.0)
         if np.count_nonzero(ok) > MAX_LOOPS:  # (evenly spread: plenty for three unknowns)
             spread = np.flatnonzero(ok)
             ok = np.zeros(ok.size, bool)
             ok[spread[np.linspace(0, spread.size - 1, MAX_LOOPS).astype(int)]] = True
-        self.a, self.b = self.a[ok], self.b[ok]
-        self.Rab, self.var, self.own = self.Rab[ok], var[ok], own[ok]
-        self.pa, self.pb = prefix[self.a], prefix[self.b]
+        c = loops.testable[ok]
+        self.a, self.b = lo[c], np.maximum(i, j)[c]
+        self.Rab = np.where(forward[c, None, None], R[c], R[c].transpose(0, 2, 1))
+        self.var, self.own = var[ok], loops.own[ok]
+        self.pa, self.pb = loops.pa[ok], loops.pb[ok]
 
     def errors(self, beta: FloatArray) -> FloatArray:
         """``log(E_e)`` per closure (m, 3) with every step corrected by ``Exp(-beta)``."""
@@ -176,9 +171,10 @@ def estimate_odometry_bias(num_nodes: int, i: IntArray, j: IntArray, R: FloatArr
                            w: FloatArray, odometry: BoolArray) -> OdometryBias | None:
     """The odometry's bias a step (module docstring); None where too few closures lie on
     one piece of the odometry with it to tell."""
-    if not odometry.any() or num_nodes < 3:
+    found = closure_loops(num_nodes, i, j, R, w, odometry)
+    if found is None or num_nodes < 3:
         return None
-    loops = _Loops(num_nodes, i, j, R, w, odometry)
+    loops = _Loops(num_nodes, i, j, R, odometry, found)
     if loops.var.size < MIN_CLOSURES:
         return None
     zero = np.zeros(3)
@@ -234,7 +230,7 @@ def estimate_odometry_bias(num_nodes: int, i: IntArray, j: IntArray, R: FloatArr
     # an estimate wandered off in a direction the loops do not tell, keeps its own); of the
     # two that pass, the one that explains more loops stands.
     axes = noise_axes(R[odometry])
-    passed = [t for t in (_tested(loops, beta, scale, axes), _tested(loops, zero, scale, axes))
+    passed = [t for t in (_tested(loops, start, err0, scale, axes) for start in (beta, zero))
               if t is not None]
     if not passed:
         return OdometryBias(beta, False, before, scale)
@@ -242,24 +238,23 @@ def estimate_odometry_bias(num_nodes: int, i: IntArray, j: IntArray, R: FloatArr
     return OdometryBias(tested, True, before, _scale(loops.errors(tested), loops.var))
 
 
-def _tested(loops: _Loops, beta: FloatArray, after: float,
+def _tested(loops: _Loops, beta: FloatArray, err0: FloatArray, after: float,
             axes: int) -> tuple[FloatArray, int] | None:
-    """The bias that stands, or None: ``beta`` refined by generalized least squares (GLS)
-    over the loops consistent with it (at the corrected scale ``after``) and short enough
-    for the first-order model (:data:`TEST_SPREAD` at the noise the fit shows), where that
-    lowers their GLS by more than the 99.9% quantile of a chi-square with ``axes`` degrees
-    of freedom (in units of the noise that remains), in all of them and in each half of
-    them along the trajectory (by the loop's middle). The errors are in the world frame,
-    where each step's noise is isotropic (about one axis on a planar problem), so two loops
-    covary by the odometry variance they share: a random walk's realized drift, which
-    every loop over the same stretch repeats, is no bias. The GLS refit leaves a direction
-    the loops do not tell at zero, where the loops' lower quantile, flat there, may have
-    wandered (a nearly planar garage's roll and pitch: up to 0.85 deg a step). A bias is
-    one rotation a step along the whole trajectory; a group of mutually consistent false
-    closures in one place can be fitted by a rotation a step too, but only its own half
-    shows it."""
+    """The bias that stands, or None (``err0``: the loops' errors uncorrected): ``beta``
+    refined by generalized least squares (GLS) over the loops consistent with it (at the
+    corrected scale ``after``) and short enough for the first-order model
+    (:data:`TEST_SPREAD` at the noise the fit shows), where that lowers their GLS by more
+    than the 99.9% quantile of a chi-square with ``axes`` degrees of freedom (in units of
+    the noise that remains), in all of them and in each half of them along the trajectory
+    (by the loop's middle). The errors are in the world frame, where each step's noise is
+    isotropic (about one axis on a planar problem), so two loops covary by the odometry
+    variance they share: a random walk's realized drift, which every loop over the same
+    stretch repeats, is no bias. The GLS refit leaves a direction the loops do not tell at
+    zero, where the loops' lower quantile, flat there, may have wandered (a nearly planar
+    garage's roll and pitch: up to 0.85 deg a step). A bias is one rotation a step along the
+    whole trajectory; a group of mutually consistent false closures in one place can be
+    fitted by a rotation a step too, but only its own half shows it."""
     chi2 = CHI2_3_999 if axes == 3 else CHI2_1_999
-    err0 = loops.errors(np.zeros(3))
     fitted, sigma, stat, kept = beta, after, 0.0, np.zeros(0, np.int64)
     for _ in range(TEST_ROUNDS):  # the loops consistent with the fit, at the noise it shows
         err = loops.errors(fitted)
