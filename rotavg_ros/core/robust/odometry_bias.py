@@ -11,12 +11,12 @@ The estimate is the ``beta`` under which the closures' loops read the lowest noi
 their squared loop angles over their random-walk variance, the lower quantile of
 :func:`~.closure_consistency.loop_noise_scale`, which stands while most closures are false.
 Each loop's error ``log(E_e(beta))`` (``E_e = Q_a^T R_ab Q_b``, ``Q`` the odometry composed
-with every step corrected by ``Exp(-beta)``) is linearized in ``beta`` by finite
-differences. Each pair of the shortest loops proposes the ``beta`` that closes it (a long
-loop's error may have wrapped past a half turn and read small by chance); from zero and
-from the best proposal, Gauss-Newton rounds on the loops consistent at the current scale
-bring ever longer loops in, as the estimate's uncertainty keeps their errors in the linear
-range.
+with every step corrected by ``Exp(-beta)``), taken in the loop's own first frame, is
+linearized in ``beta`` by finite differences. Each pair of the shortest loops proposes the
+``beta`` that closes it (a long loop's error may have wrapped past a half turn and read
+small by chance); from zero and from the best proposal, Gauss-Newton rounds on the loops
+consistent at the current scale bring ever longer loops in, as the estimate's uncertainty
+keeps their errors in the linear range.
 
 The correction stands only where it passes a test (:func:`_tested`): a generalized
 least squares of the loop errors, whose covariance is the odometry the loops share, so that
@@ -136,8 +136,12 @@ class _Loops:
         self.var, self.own = var[ok], loops.own[ok]
         self.pa, self.pb = loops.pa[ok], loops.pb[ok]
 
-    def errors(self, beta: FloatArray) -> FloatArray:
-        """``log(E_e)`` per closure (m, 3) with every step corrected by ``Exp(-beta)``."""
+    def errors(self, beta: FloatArray, local: bool = False) -> FloatArray:
+        """``log(E_e)`` per closure (m, 3) with every step corrected by ``Exp(-beta)``, in
+        the world frame; ``local``: in the loop's first frame, ``Q_a log(E_e)``, where it
+        depends on the loop's own steps only (in the world frame its direction also turns
+        with every step before the loop, by the loop's error times their number: a far
+        loop's error is linear in ``beta`` over a far smaller range there)."""
         fix = exp_map(-beta)
         A = np.where(self.has_step[:, None, None], fix @ self.steps, self.steps)
         # Q_{k+1} = S_k^T Q_k, Q_0 = I: a cumulative product, by doubling.
@@ -148,14 +152,16 @@ class _Loops:
             d *= 2
         Q = np.concatenate([np.eye(3)[None], C])
         E = Q[self.a].transpose(0, 2, 1) @ self.Rab @ Q[self.b]
+        if local:
+            return np.einsum("eij,ej->ei", Q[self.a], log_map(E))
         return log_map(E)
 
-    def jacobian(self, beta: FloatArray, at: FloatArray) -> FloatArray:
+    def jacobian(self, beta: FloatArray, at: FloatArray, local: bool = False) -> FloatArray:
         """d log(E_e) / d beta per closure (m, 3, 3), by finite differences from ``at``
-        (:meth:`errors` at ``beta``)."""
+        (:meth:`errors` at ``beta``, in the same frame: ``local``)."""
         J = np.empty((at.shape[0], 3, 3))
         for k in range(3):
-            J[:, :, k] = (self.errors(beta + _STEP * np.eye(3)[k]) - at) / _STEP
+            J[:, :, k] = (self.errors(beta + _STEP * np.eye(3)[k], local) - at) / _STEP
         return J
 
 
@@ -182,7 +188,10 @@ def estimate_odometry_bias(num_nodes: int, i: IntArray, j: IntArray, R: FloatArr
     before = _scale(err0, loops.var)
     if not math.isfinite(before) or before <= 0.0:
         return None
-    J0 = loops.jacobian(zero, err0)
+    # The search runs on the loops' errors in their own first frames (:meth:`_Loops.errors`);
+    # the test, on the world frame's.
+    local0 = loops.errors(zero, local=True)
+    J0 = loops.jacobian(zero, local0, local=True)
     by_length = np.argsort(loops.var, kind="stable")
     # Proposals: each pair of the shortest loops, and all of them together, solved by least
     # squares in the linearization at zero. (Short loops: a long loop's error may have
@@ -192,7 +201,7 @@ def estimate_odometry_bias(num_nodes: int, i: IntArray, j: IntArray, R: FloatArr
     groups = [np.array(p) for p in pairs] + [short]
     best, best_scale = zero, before
     for g in groups:
-        beta = _gauss_newton_step(zero, J0[g], err0[g], loops.var[g], before)[0]
+        beta = _gauss_newton_step(zero, J0[g], local0[g], loops.var[g], before)[0]
         s = _scale(loops.errors(beta), loops.var)
         if s < best_scale:
             best, best_scale = beta, s
@@ -208,11 +217,11 @@ def estimate_odometry_bias(num_nodes: int, i: IntArray, j: IntArray, R: FloatArr
     for start in (zero, best):
         path, reach, kept = start, first, np.zeros(0, np.int64)
         for _ in range(REFINE_ROUNDS):
-            err = loops.errors(path)
+            err = loops.errors(path, local=True)
             s = _scale(err, loops.var)
             if s < scale:
                 beta, scale = path, s
-            J = loops.jacobian(path, err)
+            J = loops.jacobian(path, err, local=True)
             ratio = np.sum(err * err, axis=1) / loops.var
             fit = (reach & (ratio < chi2 * s * s)
                    & (np.linalg.norm(err, axis=1) < ROUND_MAX_ANGLE))
