@@ -142,6 +142,11 @@ class _Loops:
         depends on the loop's own steps only (in the world frame its direction also turns
         with every step before the loop, by the loop's error times their number: a far
         loop's error is linear in ``beta`` over a far smaller range there)."""
+        world, local_errors = self.errors_in_both_frames(beta)
+        return local_errors if local else world
+
+    def errors_in_both_frames(self, beta: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """:meth:`errors` in the world frame and in the loops' own, from one composition."""
         fix = exp_map(-beta)
         A = np.where(self.has_step[:, None, None], fix @ self.steps, self.steps)
         # Q_{k+1} = S_k^T Q_k, Q_0 = I: a cumulative product, by doubling.
@@ -152,9 +157,8 @@ class _Loops:
             d *= 2
         Q = np.concatenate([np.eye(3)[None], C])
         E = Q[self.a].transpose(0, 2, 1) @ self.Rab @ Q[self.b]
-        if local:
-            return np.einsum("eij,ej->ei", Q[self.a], log_map(E))
-        return log_map(E)
+        world = log_map(E)
+        return world, np.einsum("eij,ej->ei", Q[self.a], world)
 
     def jacobian(self, beta: FloatArray, at: FloatArray, local: bool = False) -> FloatArray:
         """d log(E_e) / d beta per closure (m, 3, 3), by finite differences from ``at``
@@ -184,13 +188,12 @@ def estimate_odometry_bias(num_nodes: int, i: IntArray, j: IntArray, R: FloatArr
     if loops.var.size < MIN_CLOSURES:
         return None
     zero = np.zeros(3)
-    err0 = loops.errors(zero)
+    # The search runs on the loops' errors in their own first frames (:meth:`_Loops.errors`);
+    # the test, on the world frame's.
+    err0, local0 = loops.errors_in_both_frames(zero)
     before = _scale(err0, loops.var)
     if not math.isfinite(before) or before <= 0.0:
         return None
-    # The search runs on the loops' errors in their own first frames (:meth:`_Loops.errors`);
-    # the test, on the world frame's.
-    local0 = loops.errors(zero, local=True)
     J0 = loops.jacobian(zero, local0, local=True)
     by_length = np.argsort(loops.var, kind="stable")
     # Proposals: each pair of the shortest loops, and all of them together, solved by least
