@@ -400,8 +400,7 @@ class VerifyOptions:
     and remove it from every odometry measurement before the solve where the loops show it
     beyond the odometry's own drift, in both halves of the trajectory (a generalized least
     squares over the odometry the loops share; :mod:`rotavg_ros.core.robust.odometry_bias`;
-    diagnostic
-    ``odometry_bias_deg_per_step``). A bias makes the loop errors grow with the loop's
+    diagnostic ``odometry_bias_deg_per_step``). A bias makes the loop errors grow with the loop's
     length, where the loop tests assume a random walk's square root, and they reject true
     closures (chains of 1,000-3,000 keyframes at 0.5-1 deg a step: up to 70 deg mean error
     without it; docs/benchmarks.md). Off: the odometry stays as measured."""

@@ -142,11 +142,18 @@ class _Loops:
         depends on the loop's own steps only (in the world frame its direction also turns
         with every step before the loop, by the loop's error times their number: a far
         loop's error is linear in ``beta`` over a far smaller range there)."""
-        world, local_errors = self.errors_in_both_frames(beta)
-        return local_errors if local else world
+        Qa, world = self._composed(beta)
+        return _to_frames(Qa, world) if local else world
 
     def errors_in_both_frames(self, beta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """:meth:`errors` in the world frame and in the loops' own, from one composition."""
+        Qa, world = self._composed(beta)
+        return world, _to_frames(Qa, world)
+
+    def _composed(self, beta: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The composed odometry at each loop's first node, ``Q_a`` (m, 3, 3), and the
+        loops' world-frame errors ``log(E_e)`` (m, 3), every step corrected by
+        ``Exp(-beta)``."""
         fix = exp_map(-beta)
         A = np.where(self.has_step[:, None, None], fix @ self.steps, self.steps)
         # Q_{k+1} = S_k^T Q_k, Q_0 = I: a cumulative product, by doubling.
@@ -156,9 +163,8 @@ class _Loops:
             C[d:] = C[d:] @ C[:-d]
             d *= 2
         Q = np.concatenate([np.eye(3)[None], C])
-        E = Q[self.a].transpose(0, 2, 1) @ self.Rab @ Q[self.b]
-        world = log_map(E)
-        return world, np.einsum("eij,ej->ei", Q[self.a], world)
+        Qa = Q[self.a]
+        return Qa, log_map(Qa.transpose(0, 2, 1) @ self.Rab @ Q[self.b])
 
     def jacobian(self, beta: FloatArray, at: FloatArray, local: bool = False) -> FloatArray:
         """d log(E_e) / d beta per closure (m, 3, 3), by finite differences from ``at``
@@ -167,6 +173,11 @@ class _Loops:
         for k in range(3):
             J[:, :, k] = (self.errors(beta + _STEP * np.eye(3)[k], local) - at) / _STEP
         return J
+
+
+def _to_frames(Qa: FloatArray, world: FloatArray) -> FloatArray:
+    """World-frame loop errors (m, 3) in each loop's first frame: ``Q_a log(E_e)``."""
+    return np.asarray(np.einsum("eij,ej->ei", Qa, world), dtype=np.float64)
 
 
 def _scale(err: FloatArray, var: FloatArray) -> float:
