@@ -1,0 +1,181 @@
+"""Block turns: rigid moves of a block of nodes that one kept edge alone holds.
+
+A least-squares (or GNC) fit can leave a whole block of nodes turned: where the block's edges
+to the rest are few and one of them is wrong, a local method fits the wrong one and rejects
+the true ones (each of which, from there, looks like an outlier). The single-node moves of
+:mod:`.relocalize` cannot undo that: every node of the block agrees with its neighbours in
+the block. The block's own edges to the rest say so: where the explained edges (residual
+within the cap, or trusted) hold the block to the rest by one edge only (a bridge of the
+explained graph, :func:`find_bridges`), every rejected edge between the block and the rest
+predicts a rigid turn of the block, and the true ones agree on it (the 1,661-node
+parking-garage of ``regime_stress`` draw 97 with wrong odometry steps: nodes 0-56 and
+1581-1660 held by the wrong step at keyframe 56, the true step 1580-1581 and a true closure
+to the rest rejected, 73 deg off together).
+
+For each bridge that is not trusted, with at least two nodes on each side, the nodes on the
+side away from the search's root turn as ``R_k <- R_k M``: edges inside the block and
+outside it keep their residuals. A rejected edge ``(a, b)`` from the block to the rest
+predicts ``M = R_a^T R_ab R_b`` (``a`` in the block) or ``R_b^T R_ab^T R_a`` (``b`` in the
+block). The largest group of predictions within ``tolerance`` of one of them proposes the
+turn to their chordal mean where it has at least two edges, weighs more than the bridge and
+lies farther than ``tolerance`` from the block's placement (nearer, the edges are only
+noisy: a re-fit's business). The tolerance is wide (the caller's initial threshold, 30 deg):
+the true edges' predictions carry the drift of the fit that left the block turned (13 deg
+apart in that parking-garage); random false edges rarely agree within it. A proposal is
+only that: the caller re-fits each and keeps it where its objective says so
+(:func:`~.verify.turn_blocks`).
+
+Conventions: world-to-node ``R_i``, ``R_ij ~= R_i R_j^T``; a block turns in its nodes' own
+frames (right multiplication), and the search's root, node 0 (the anchor), never moves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rotavg_ros.core.robust.gauss_newton import residual_angles
+from rotavg_ros.core.so3 import geodesic_distance, project_to_so3
+from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
+
+MAX_TURNS = 3
+"""At most this many block turns are proposed (each costs the caller a least-squares re-fit),
+the best supported first."""
+
+
+@dataclass(frozen=True)
+class Bridges:
+    """The bridges of a graph from one depth-first search (roots in node order)."""
+
+    edges: IntArray
+    """Edge index of each bridge."""
+    child: IntArray
+    """The bridge's end deeper in the search: its subtree is the side away from the root."""
+    pre: IntArray
+    """Preorder number of every node: a subtree is ``pre[child] <= pre < pre[child] +
+    size[child]``."""
+    size: IntArray
+    """Nodes in each node's subtree."""
+    component_size: IntArray
+    """Nodes in each node's connected component."""
+
+
+def find_bridges(num_nodes: int, i: IntArray, j: IntArray, keep: BoolArray) -> Bridges:
+    """Bridges of the graph of the ``keep`` edges (parallel edges are no bridges): an
+    iterative depth-first search with low points (Tarjan)."""
+    e_keep = np.flatnonzero(keep)
+    ends = np.concatenate([i[e_keep], j[e_keep]])
+    others = np.concatenate([j[e_keep], i[e_keep]])
+    ids = np.concatenate([e_keep, e_keep])
+    order = np.argsort(ends, kind="stable")
+    start = np.searchsorted(ends[order], np.arange(num_nodes + 1)).tolist()
+    other, edge_id = others[order].tolist(), ids[order].tolist()
+    pre = [-1] * num_nodes
+    low = [0] * num_nodes
+    size = [1] * num_nodes
+    comp = [0] * num_nodes
+    ptr = start[:-1]
+    bridge_edges: list[int] = []
+    bridge_child: list[int] = []
+    comp_sizes: list[int] = []
+    counter = 0
+    for root in range(num_nodes):
+        if pre[root] >= 0:
+            continue
+        first = counter
+        pre[root] = low[root] = counter
+        counter += 1
+        stack = [(root, -1)]
+        while stack:
+            v, parent_edge = stack[-1]
+            comp[v] = len(comp_sizes)
+            if ptr[v] < start[v + 1]:
+                k = ptr[v]
+                ptr[v] += 1
+                e, u = edge_id[k], other[k]
+                if e == parent_edge:
+                    continue
+                if pre[u] < 0:
+                    pre[u] = low[u] = counter
+                    counter += 1
+                    stack.append((u, e))
+                elif pre[u] < low[v]:
+                    low[v] = pre[u]
+                continue
+            stack.pop()
+            size[v] = counter - pre[v]
+            if stack:
+                p = stack[-1][0]
+                if low[v] < low[p]:
+                    low[p] = low[v]
+                if low[v] > pre[p]:
+                    bridge_edges.append(parent_edge)
+                    bridge_child.append(v)
+        comp_sizes.append(counter - first)
+    return Bridges(np.asarray(bridge_edges, np.int64), np.asarray(bridge_child, np.int64),
+                   np.asarray(pre, np.int64), np.asarray(size, np.int64),
+                   np.asarray(comp_sizes, np.int64)[np.asarray(comp, np.int64)])
+
+
+@dataclass(frozen=True)
+class BlockTurn:
+    """A rigid turn of a block of nodes: ``R_k <- R_k turn`` for ``k`` in ``nodes``."""
+
+    nodes: IntArray
+    turn: FloatArray
+    cut: int
+    """The bridge the turn cuts (the edge that alone held the block where it was)."""
+    joins: IntArray
+    """The crossing edges that agree on the turn (they hold the block after it)."""
+    relocalized: int
+    """Nodes on the smaller side of the cut (those that end far off if the turn is wrong)."""
+
+
+def block_turns(
+    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, cap: float,
+    tolerance: float, trusted: BoolArray | None = None, limit: int = MAX_TURNS,
+) -> list[BlockTurn]:
+    """Up to ``limit`` block turns (module docstring), the best supported first: for each
+    bridge of the edges ``rot`` explains (residual ``sqrt(w) * angle`` within ``cap``, or
+    ``trusted``) that is not trusted, with two nodes or more on each side, the largest
+    group of unexplained crossing edges whose predicted turns lie within ``tolerance`` of
+    one of them, where it weighs more than the bridge and its turn lies farther than
+    ``tolerance`` from the block's placement."""
+    n = rot.shape[0]
+    known = np.zeros(i.size, bool) if trusted is None else trusted
+    keep = (residual_angles(rot, i, j, R) * np.sqrt(w) <= cap) | known
+    if keep.all():
+        return []
+    bridges = find_bridges(n, i, j, keep)
+    unexplained = np.flatnonzero(~keep)
+    pre = bridges.pre
+    turns: list[tuple[float, BlockTurn]] = []
+    for bridge, v in zip(bridges.edges.tolist(), bridges.child.tolist(), strict=True):
+        if known[bridge] or bridges.size[v] < 2 or (
+                bridges.component_size[v] - bridges.size[v] < 2):
+            continue
+        lo, hi = pre[v], pre[v] + bridges.size[v]
+        in_a = (pre[i[unexplained]] >= lo) & (pre[i[unexplained]] < hi)
+        in_b = (pre[j[unexplained]] >= lo) & (pre[j[unexplained]] < hi)
+        e = unexplained[in_a != in_b]
+        if e.size < 2:
+            continue
+        # The turn each crossing edge predicts: M = R_a^T R_ab R_b with a in the block,
+        # its transpose with b in the block.
+        pred = np.transpose(rot[i[e]], (0, 2, 1)) @ R[e] @ rot[j[e]]
+        P = np.where(in_a[in_a != in_b][:, None, None], pred, np.transpose(pred, (0, 2, 1)))
+        near = geodesic_distance(P[:, None], P[None]) <= tolerance
+        seed = int(np.argmax(near @ w[e]))
+        group = near[seed]
+        if group.sum() < 2 or w[e][group].sum() <= w[bridge]:
+            continue
+        M = project_to_so3(np.einsum("e,eab->ab", w[e][group], P[group]))
+        if geodesic_distance(M, np.eye(3)) <= tolerance:
+            continue
+        nodes = np.flatnonzero((pre >= lo) & (pre < hi))
+        smaller = min(nodes.size, int(bridges.component_size[v]) - nodes.size)
+        turns.append((float(w[e][group].sum()),
+                      BlockTurn(nodes, M, bridge, e[group], smaller)))
+    turns.sort(key=lambda t: -t[0])
+    return [turn for _, turn in turns[:limit]]

@@ -1,0 +1,159 @@
+"""Block turns (relocalize_blocks): bridges of the explained edges, the turns the rejected
+edges across them propose, and the verification's step-5 re-fit that keeps a turn."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from benchmarks import regime_cases as rc
+from rotavg_ros.core.metrics import evaluate
+from rotavg_ros.core.robust.gauss_newton import refine_least_squares
+from rotavg_ros.core.robust.relocalize_blocks import block_turns, find_bridges
+from rotavg_ros.core.robust.verify import _fit_and_classify, chain_tree, turn_blocks
+
+
+def _components(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    graph = coo_matrix((np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def test_bridges_match_the_edges_whose_removal_splits_the_graph() -> None:
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        n, m = 30, int(rng.integers(25, 45))
+        i, j = rng.integers(0, n, m), rng.integers(0, n, m)
+        i, j = i[i != j], j[i != j]
+        i, j = np.r_[i, i[:2]], np.r_[j, j[:2]]  # two parallel edges: never bridges
+        keep = rng.random(i.size) < 0.9
+        keep[-2:] = keep[:2]
+        base = np.unique(_components(n, i, j, keep)).size
+        every = np.arange(i.size)
+        brute = {e for e in np.flatnonzero(keep)
+                 if np.unique(_components(n, i, j, keep & (every != e))).size > base}
+        bridges = find_bridges(n, i, j, keep)
+        assert set(bridges.edges.tolist()) == brute
+        for e, v in zip(bridges.edges, bridges.child, strict=True):
+            # The child's subtree is the side the bridge alone held.
+            label = _components(n, i, j, keep & (every != e))
+            side = (bridges.pre >= bridges.pre[v]) & (bridges.pre < bridges.pre[v]
+                                                      + bridges.size[v])
+            assert set(np.flatnonzero(side)) == set(np.flatnonzero(label == label[v]))
+            assert bridges.component_size[v] == np.count_nonzero(
+                _components(n, i, j, keep) == _components(n, i, j, keep)[v])
+
+
+def _hinged_block(wrong_bridge: bool, seed: int = 0) -> dict[str, np.ndarray]:
+    """120 keyframes (1 deg noise on every edge), the block 0-29 + 90-119 and the rest
+    30-89 each held together by closures within them; between them only the steps
+    (29, 30) and (89, 90) and the closure (15, 60). ``wrong_bridge``: step (29, 30) is a
+    false rotation, and ``rot`` the least-squares fit that keeps it and rejects the other
+    two (the block turned with it); else the true step (29, 30) alone joins the two sides
+    (no (89, 90), no (15, 60)), and three false closures between them (that disagree with
+    each other) are rejected by the true fit."""
+    rng = np.random.default_rng(seed)
+    n = 120
+    gt = rc.chain_trajectory(n, rng)
+    block = (np.arange(n) < 30) | (np.arange(n) >= 90)
+    pairs = [(k, k + 1) for k in range(n - 1)] + [(15, 60)]
+    if not wrong_bridge:
+        pairs = [p for p in pairs if p not in ((89, 90), (15, 60))]
+    size = len(pairs)
+    while len(pairs) < size + 80:  # closures inside either side
+        a, b = sorted(int(x) for x in rng.integers(0, n, 2))
+        if b - a > 2 and block[a] == block[b]:
+            pairs.append((a, b))
+    if not wrong_bridge:
+        pairs += [(5, 40), (100, 70), (20, 85)]
+    i = np.array([p[0] for p in pairs], np.int64)
+    j = np.array([p[1] for p in pairs], np.int64)
+    R = rc.perturb(rc.relative(gt, i, j), 1.0, rng)
+    false = np.zeros(i.size, bool)
+    if wrong_bridge:
+        false[29] = True
+    else:
+        false[-3:] = True
+    R[false] = rc.false_rotations(R[false], rng, min_deg=60.0)
+    rot = gt.copy()
+    if wrong_bridge:  # the block turned so that the false step fits
+        turn = gt[29].T @ R[29] @ gt[30]
+        rot[block] = gt[block] @ turn
+    inlier = ~false
+    if wrong_bridge:
+        crossing = block[i] != block[j]
+        inlier = ~crossing
+        inlier[29] = True
+    odometry = np.abs(i - j) == 1
+    known = odometry & (block[i] == block[j])  # the steps across the cut are suspects
+    rot = refine_least_squares(rot, i, j, R, np.ones(i.size) * inlier)
+    return {"gt": gt, "i": i, "j": j, "R": R, "rot": rot, "inlier": inlier, "known": known,
+            "false": false}
+
+
+def _turned(case: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, int] | None:
+    i, j, R, rot, inlier = case["i"], case["j"], case["R"], case["rot"], case["inlier"]
+    w = np.ones(i.size)
+    tree = chain_tree(case["gt"].shape[0], i, j, w)
+    noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, math.radians(90.0), tree)
+    out = turn_blocks(rot, i, j, R, w, (inlier, noise, t), case["known"], tree=tree,
+                      rounds=2, max_threshold=math.radians(90.0),
+                      initial_threshold=math.radians(30.0))
+    return None if out is None else (out[0], out[1], out[4])
+
+
+def _mean_error(rot: np.ndarray, gt: np.ndarray) -> float:
+    return evaluate(dict(enumerate(rot)), dict(enumerate(gt))).mean_deg
+
+
+def test_a_block_held_by_one_wrong_step_turns_where_its_true_edges_agree() -> None:
+    case = _hinged_block(wrong_bridge=True)
+    i, j = case["i"], case["j"]
+    assert _mean_error(case["rot"], case["gt"]) > 20.0  # half the nodes far off
+    cap = math.radians(3.0)
+    turns = block_turns(case["rot"], i, j, case["R"], np.ones(i.size), cap,
+                        math.radians(30.0), case["known"])
+    assert len(turns) == 1
+    assert turns[0].cut == 29
+    assert sorted((int(i[k]), int(j[k])) for k in turns[0].joins) == [(15, 60), (89, 90)]
+    assert turns[0].relocalized == 60
+    out = _turned(case)
+    assert out is not None
+    rot, inlier, moved = out
+    assert moved == 60
+    assert _mean_error(rot, case["gt"]) < 1.5
+    assert not inlier[29] and inlier[np.flatnonzero(case["false"] == 0)].all()
+
+
+def test_no_turn_where_the_rejected_edges_across_a_true_bridge_disagree() -> None:
+    case = _hinged_block(wrong_bridge=False)
+    i, j = case["i"], case["j"]
+    # The true step (29, 30) alone holds the two sides (a bridge); the three false closures
+    # across it predict turns scattered far apart.
+    assert 29 in find_bridges(120, i, j, case["inlier"]).edges
+    turns = block_turns(case["rot"], i, j, case["R"], np.ones(i.size), math.radians(3.0),
+                        math.radians(30.0), case["known"])
+    assert turns == []
+    assert _turned(case) is None
+    # Trusted, the same bridge never turns, whatever the edges across it say.
+    known = case["known"] | (np.abs(i - j) == 1)
+    assert block_turns(case["rot"], i, j, case["R"], np.ones(i.size), math.radians(3.0),
+                       math.radians(30.0), known) == []
+
+
+def test_a_turn_is_a_rotation_in_the_blocks_own_frames() -> None:
+    # The turn M right-multiplies the block's world-to-node rotations: edges inside the
+    # block keep their residuals, and node 0 (the search's root) never moves.
+    case = _hinged_block(wrong_bridge=True)
+    i, j = case["i"], case["j"]
+    turns = block_turns(case["rot"], i, j, case["R"], np.ones(i.size), math.radians(3.0),
+                        math.radians(30.0), case["known"])
+    assert 0 not in turns[0].nodes
+    rot = case["rot"].copy()
+    rot[turns[0].nodes] = rot[turns[0].nodes] @ turns[0].turn
+    inside = np.isin(i, turns[0].nodes) == np.isin(j, turns[0].nodes)
+    before = case["rot"][i[inside]] @ np.swapaxes(case["rot"][j[inside]], 1, 2)
+    after = rot[i[inside]] @ np.swapaxes(rot[j[inside]], 1, 2)
+    np.testing.assert_allclose(before, after, atol=1e-9)
