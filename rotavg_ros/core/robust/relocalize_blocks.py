@@ -1,32 +1,39 @@
-"""Block turns: rigid moves of a block of nodes that one kept edge alone holds.
+"""Block turns: rigid moves of a block of nodes that one piece of evidence alone holds.
 
 A least-squares (or GNC) fit can leave a whole block of nodes turned: where the block's edges
 to the rest are few and one of them is wrong, a local method fits the wrong one and rejects
 the true ones (each of which, from there, looks like an outlier). The single-node moves of
 :mod:`.relocalize` cannot undo that: every node of the block agrees with its neighbours in
-the block. The block's own edges to the rest say so: where the explained edges (residual
-within the cap, or trusted) hold the block to the rest by one edge only (a bridge of the
-explained graph, :func:`find_bridges`), every rejected edge between the block and the rest
-predicts a rigid turn of the block, and the true ones agree on it (the 1,661-node
-parking-garage of ``regime_stress`` draw 97 with wrong odometry steps: nodes 0-56 and
-1581-1660 held by the wrong step at keyframe 56, the true step 1580-1581 and a true closure
-to the rest rejected, 73 deg off together).
+the block. The block's own edges to the rest say so. The explained edges (residual within
+the cap, or trusted) hold such a block to the rest by one piece of evidence only:
 
-For each bridge that is not trusted, with at least two nodes on each side, the nodes on the
-side away from the search's root turn as ``R_k <- R_k M``: edges inside the block and
-outside it keep their residuals. A rejected edge ``(a, b)`` from the block to the rest
-predicts ``M = R_a^T R_ab R_b`` (``a`` in the block) or ``R_b^T R_ab^T R_a`` (``b`` in the
-block). The largest group of predictions within ``tolerance`` of one of them proposes the
-turn to their chordal mean where it has at least two edges, weighs more than the bridge and
-lies farther than ``tolerance`` from the block's placement (nearer, the edges are only
-noisy: a re-fit's business). The tolerance is wide (the caller's initial threshold, 30 deg):
-the true edges' predictions carry the drift of the fit that left the block turned (13 deg
-apart in that parking-garage); random false edges rarely agree within it. A proposal is
-only that: the caller re-fits each and keeps it where its objective says so
-(:func:`~.verify.turn_blocks`).
+- **a bridge** of the explained graph (:func:`find_bridges`): one edge (the 1,661-node
+  parking-garage of ``regime_stress`` draw 97 with wrong odometry steps: nodes 0-56 and
+  1581-1660 held by the wrong step at keyframe 56, the true step 1580-1581 and a true
+  closure to the rest rejected, 73 deg off together);
+- **a run of loop closures** (:func:`~.closure_runs.closure_runs`: closures between the
+  same two stretches) whose removal splits the explained graph with the whole run between
+  the two sides: one wrong match repeated keyframe after keyframe (the issue's new-user
+  chain with a group of seven false closures and a wrong odometry step: nodes 0-41 held by
+  the group, the four true closures across rejected, 62.6 deg mean error).
+
+For each such cut that is not trusted, with at least two nodes on each side, the nodes on
+the side away from node 0 turn as ``R_k <- R_k M``: edges inside the block and outside it
+keep their residuals. A rejected edge ``(a, b)`` from the block to the rest predicts ``M =
+R_a^T R_ab R_b`` (``a`` in the block) or ``R_b^T R_ab^T R_a`` (``b`` in the block). The
+largest group of predictions within ``tolerance`` of one of them proposes the turn to their
+chordal mean where it is at least two independent pieces of evidence
+(:func:`~.closure_runs.independent_pieces`: each run one, each other edge one) and lies
+farther than ``tolerance`` from the block's placement (nearer, the edges are only noisy: a
+re-fit's business). The tolerance is wide (the caller's initial threshold, 30 deg): the
+true edges' predictions carry the drift of the fit that left the block turned (13 deg
+apart in that parking-garage); random false edges rarely agree within it, and a group of
+consistent false ones is one run, one piece. A proposal is only that: the caller re-fits
+each and keeps it where its objective says so (:func:`~.verify.turn_blocks`).
 
 Conventions: world-to-node ``R_i``, ``R_ij ~= R_i R_j^T``; a block turns in its nodes' own
-frames (right multiplication), and the search's root, node 0 (the anchor), never moves.
+frames (right multiplication), on the side away from node 0 (the anchor) where one side
+holds it.
 """
 
 from __future__ import annotations
@@ -34,7 +41,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
+from rotavg_ros.core.robust.closure_runs import closure_runs, independent_pieces
 from rotavg_ros.core.robust.gauss_newton import residual_angles
 from rotavg_ros.core.so3 import geodesic_distance, project_to_so3
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
@@ -124,8 +134,9 @@ class BlockTurn:
 
     nodes: IntArray
     turn: FloatArray
-    cut: int
-    """The bridge the turn cuts (the edge that alone held the block where it was)."""
+    cut: IntArray
+    """The edges the turn cuts: the bridge, or the run of closures, that alone held the
+    block where it was."""
     joins: IntArray
     """The crossing edges that agree on the turn (they hold the block after it)."""
     relocalized: int
@@ -134,30 +145,29 @@ class BlockTurn:
 
 def block_turns(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, cap: float,
-    tolerance: float, trusted: BoolArray | None = None, limit: int = MAX_TURNS,
+    tolerance: float, trusted: BoolArray | None = None,
+    closures: BoolArray | None = None, limit: int = MAX_TURNS,
 ) -> list[BlockTurn]:
     """Up to ``limit`` block turns (module docstring), the best supported first: for each
-    bridge of the edges ``rot`` explains (residual ``sqrt(w) * angle`` within ``cap``, or
-    ``trusted``) that is not trusted, with two nodes or more on each side, the largest
-    group of unexplained crossing edges whose predicted turns lie within ``tolerance`` of
-    one of them, where it weighs more than the bridge and its turn lies farther than
+    cut of the edges ``rot`` explains (residual ``sqrt(w) * angle`` within ``cap``, or
+    ``trusted``) by one piece of evidence that is not trusted (a bridge, or a run of
+    ``closures``, :func:`~.closure_runs.closure_runs`), with two nodes or more on each
+    side, the largest group of unexplained crossing edges whose predicted turns lie within
+    ``tolerance`` of one of them, where it is at least two independent pieces of evidence
+    (:func:`~.closure_runs.independent_pieces`) and its turn lies farther than
     ``tolerance`` from the block's placement."""
     n = rot.shape[0]
     known = np.zeros(i.size, bool) if trusted is None else trusted
+    runs_of = np.zeros(i.size, bool) if closures is None else closures
     keep = (residual_angles(rot, i, j, R) * np.sqrt(w) <= cap) | known
     if keep.all():
         return []
-    bridges = find_bridges(n, i, j, keep)
     unexplained = np.flatnonzero(~keep)
-    pre = bridges.pre
     turns: list[tuple[float, BlockTurn]] = []
-    for bridge, v in zip(bridges.edges.tolist(), bridges.child.tolist(), strict=True):
-        if known[bridge] or bridges.size[v] < 2 or (
-                bridges.component_size[v] - bridges.size[v] < 2):
+    for cut, side, component in _cuts(n, i, j, keep, known, runs_of):
+        if side.sum() < 2 or component - side.sum() < 2:
             continue
-        lo, hi = pre[v], pre[v] + bridges.size[v]
-        in_a = (pre[i[unexplained]] >= lo) & (pre[i[unexplained]] < hi)
-        in_b = (pre[j[unexplained]] >= lo) & (pre[j[unexplained]] < hi)
+        in_a, in_b = side[i[unexplained]], side[j[unexplained]]
         e = unexplained[in_a != in_b]
         if e.size < 2:
             continue
@@ -166,16 +176,46 @@ def block_turns(
         pred = np.transpose(rot[i[e]], (0, 2, 1)) @ R[e] @ rot[j[e]]
         P = np.where(in_a[in_a != in_b][:, None, None], pred, np.transpose(pred, (0, 2, 1)))
         near = geodesic_distance(P[:, None], P[None]) <= tolerance
-        seed = int(np.argmax(near @ w[e]))
-        group = near[seed]
-        if group.sum() < 2 or w[e][group].sum() <= w[bridge]:
+        group = near[int(np.argmax(near @ w[e]))]
+        joins = e[group]
+        pieces = independent_pieces(i, j, np.isin(np.arange(i.size), joins) & runs_of)
+        if pieces + int(np.count_nonzero(~runs_of[joins])) < 2:
             continue
-        M = project_to_so3(np.einsum("e,eab->ab", w[e][group], P[group]))
+        M = project_to_so3(np.einsum("e,eab->ab", w[joins], P[group]))
         if geodesic_distance(M, np.eye(3)) <= tolerance:
             continue
-        nodes = np.flatnonzero((pre >= lo) & (pre < hi))
-        smaller = min(nodes.size, int(bridges.component_size[v]) - nodes.size)
-        turns.append((float(w[e][group].sum()),
-                      BlockTurn(nodes, M, bridge, e[group], smaller)))
+        nodes = np.flatnonzero(side)
+        smaller = min(nodes.size, component - nodes.size)
+        turns.append((float(w[joins].sum()), BlockTurn(nodes, M, cut, joins, smaller)))
     turns.sort(key=lambda t: -t[0])
     return [turn for _, turn in turns[:limit]]
+
+
+def _cuts(n: int, i: IntArray, j: IntArray, keep: BoolArray, known: BoolArray,
+          closures: BoolArray) -> list[tuple[IntArray, BoolArray, int]]:
+    """``(cut edges, side, component size)`` for each bridge of the ``keep`` edges that is
+    not ``known``, then each run of kept ``closures`` (not ``known``) whose removal splits
+    its component in two with the whole run between them; ``side``: the nodes of the side
+    away from node 0 (for a run where neither side holds node 0, the side of the run's first
+    edge's first end)."""
+    out: list[tuple[IntArray, BoolArray, int]] = []
+    bridges = find_bridges(n, i, j, keep)
+    for bridge, v in zip(bridges.edges.tolist(), bridges.child.tolist(), strict=True):
+        if known[bridge]:
+            continue
+        lo, hi = bridges.pre[v], bridges.pre[v] + bridges.size[v]
+        out.append((np.array([bridge]), (bridges.pre >= lo) & (bridges.pre < hi),
+                    int(bridges.component_size[v])))
+    for run in closure_runs(i, j, keep & closures & ~known):
+        rest = keep.copy()
+        rest[run] = False
+        graph = coo_matrix((np.ones(int(rest.sum())), (i[rest], j[rest])), shape=(n, n))
+        label = connected_components(graph, directed=False)[1]
+        a, b = label[i[run]], label[j[run]]
+        ends = {int(a[0]), int(b[0])}
+        if len(ends) < 2 or not all({int(x), int(y)} == ends for x, y in zip(a, b, strict=True)):
+            continue
+        far = int(b[0]) if label[0] == a[0] else int(a[0])
+        side = label == far
+        out.append((run, side, int(side.sum() + np.count_nonzero(label == (ends - {far}).pop()))))
+    return out

@@ -49,12 +49,13 @@ takes the solution, not the tree, as the reference, and lets the data set the th
    the jump first (:func:`~.odometry_breaks.cuts_onto_jumps`).
 5. **Relocalize.** Nodes the re-solve left far off move to where their own edges agree
    (:mod:`.relocalize`); if that lowers the choice cost, step 3 runs again from there. A
-   block of nodes that one wrong edge alone holds turns where its rejected edges to the
-   rest agree, where that lowers the truncated squares (:func:`turn_blocks`,
-   :mod:`.relocalize_blocks`). The DMF solution's far-off nodes move the same way. Last,
-   on a sparse graph, least squares on the re-solve's inliers from their chordal relaxation
-   replaces the re-solve where it fits them better (:func:`least_squares_from_relaxation`:
-   a least-squares local minimum).
+   block of nodes that one wrong edge or one run of closures alone holds turns where its
+   rejected edges to the rest agree, where that lowers the truncated squares, each run of
+   closures one piece of evidence (:func:`turn_blocks`, :mod:`.relocalize_blocks`). The
+   DMF solution's far-off nodes move the same way. Last, on a sparse graph, least squares
+   on the re-solve's inliers from their chordal relaxation replaces the re-solve where it
+   fits them better (:func:`least_squares_from_relaxation`: a least-squares local
+   minimum).
 6. **Choice.** The truncated L1 cost over all input edges decides between the re-solve and
    the DMF solution, which is kept unless the re-solve is clearly (``margin``) better: a
    filter that condemned a subtree, or false closures the DMF bent to fit, lose; a DMF
@@ -88,7 +89,7 @@ from rotavg_ros.core.robust.closure_consistency import (
     consistent_closures,
     loop_noise_scale_and_bound,
 )
-from rotavg_ros.core.robust.closure_runs import independent_pieces, suspect_runs
+from rotavg_ros.core.robust.closure_runs import closure_runs, independent_pieces, suspect_runs
 from rotavg_ros.core.robust.gauss_newton import (
     ITERATIVE_MIN_DEGREE,
     WELL_CONNECTED,
@@ -283,6 +284,25 @@ def truncated_squares(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
     closes, but adds the loop's whole misclosure, which grows with the loop's length, to the
     sum of the residual angles. A chain left in pieces fits its odometry exactly."""
     return _capped_sum(residual_angles(rot, i, j, R) ** 2 * w, c * c, trusted)
+
+
+def squares_by_pieces(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
+                      w: FloatArray, c: float, trusted: BoolArray, runs: list[IntArray],
+                      mean_square: float) -> float:
+    """:func:`truncated_squares` with each run of closures (``runs``,
+    :func:`~.closure_runs.closure_runs`) one piece of evidence: a run costs its capped
+    squares, at most one cap ``c^2`` plus ``mean_square`` (an inlier's expected square) for
+    each of its other edges. A run of false closures between the same two stretches is one
+    wrong match repeated keyframe after keyframe, so leaving it out costs what leaving out
+    one edge costs; a run of true ones, explained, costs its squares as before."""
+    squares = np.minimum(residual_angles(rot, i, j, R) ** 2 * w, np.where(trusted, np.inf,
+                                                                            c * c))
+    in_run = np.zeros(i.size, bool)
+    total = 0.0
+    for run in runs:
+        in_run[run] = True
+        total += min(float(squares[run].sum()), c * c + (run.size - 1) * mean_square)
+    return total + float(squares[~in_run].sum())
 
 
 def _capped_sum(values: FloatArray, cap: float, trusted: BoolArray | None) -> float:
@@ -538,6 +558,7 @@ def robust_resolve(
     known = np.zeros(i.size, bool)  # trusted edges: none until the noise scale is known
     runs_left_out = 0
     distrusted: BoolArray | None = None  # odometry no longer trusted (suspects of a break)
+    jumps = np.zeros(i.size, bool)  # of those, the jumps (a lost track's steps)
 
     def cost(rotations: FloatArray) -> float:
         return truncated_l1(rotations, i, j, R, w, cap, known)
@@ -618,6 +639,7 @@ def robust_resolve(
                                       untrusting.runs_left_out)
             if _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, suspects):
                 tight_fit, known, distrusted = untrusting, trusted, suspects.edges
+                jumps = suspects.jumps
         rot, inlier, noise, t = (tight_fit.rotations, tight_fit.inlier, tight_fit.noise,
                                  tight_fit.t)
         runs_left_out = tight_fit.runs_left_out
@@ -635,11 +657,13 @@ def robust_resolve(
             rot, inlier, noise, t = moved
             relocalized = moves
             cap = _cap(noise, initial_threshold)
-    # A block of nodes that one wrong edge alone holds to the rest turns where its
-    # rejected edges to the rest agree (:func:`turn_blocks`).
+    # A block of nodes that one wrong edge or one run of closures alone holds to the rest
+    # turns where its rejected edges to the rest agree (:func:`turn_blocks`).
     turned = turn_blocks(rot, i, j, R, w, (inlier, noise, t), known, tree=tree,
                          rounds=rounds, max_threshold=max_threshold,
-                         initial_threshold=initial_threshold)
+                         initial_threshold=initial_threshold,
+                         closures=~odometry if has_odometry else None,
+                         steps=odometry & ~jumps)
     if turned is not None:
         rot, inlier, noise, t, moved_nodes = turned
         relocalized += moved_nodes
@@ -661,24 +685,38 @@ def turn_blocks(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     fit: tuple[BoolArray, NoiseModel, FloatArray], known: BoolArray, *, tree: BoolArray,
     rounds: int, max_threshold: float, initial_threshold: float,
+    closures: BoolArray | None = None, steps: BoolArray | None = None,
 ) -> tuple[FloatArray, BoolArray, NoiseModel, FloatArray, int] | None:
     """Step 5's block turns: the first turn proposed by
     :func:`~.relocalize_blocks.block_turns` (at the fit's cap, ``initial_threshold`` the
-    tolerance of the agreement) that stands, as step 3's fit (rotations, inliers, noise,
-    standardized residuals) plus the nodes on the smaller side of its cut; None where none
-    stands. ``fit``: the inliers, noise model and standardized residuals of ``rot``.
+    tolerance of the agreement; runs of the ``closures`` edges, None: no runs) that
+    stands, as step 3's fit (rotations, inliers, noise, standardized residuals) plus the
+    nodes on the smaller side of its cut; None where none stands (or the fit's noise scale
+    is not finite). ``fit``: the inliers, noise model and standardized residuals of ``rot``.
 
-    Each turn is re-fitted on the inliers without the cut edge and with the edges that
+    Each turn is re-fitted on the inliers without the cut edges and with the edges that
     agree on the turn, then settles (step 3), and stands where that lowers the truncated
     squares (the GNC's objective, at ``GNC_SIGMAS`` times the lower of the two fits' noise
-    scales). Not the choice's L1 cost: the turned block closes a long loop whose drift
-    spreads over all its edges, which the L1 cost counts at full length and the squares,
-    as the noise does, at almost nothing (the parking-garage of ``regime_stress`` draw 97
-    with wrong odometry steps: L1 up by 0.2 rad, 6.6 caps, for a fit at the oracle's
-    accuracy, 1.49 deg mean error where the block's 137 nodes had been 73 deg off)."""
+    scales) with each run of closures one piece of evidence (:func:`squares_by_pieces`:
+    the fit that cut a run of seven false closures must not pay seven caps where the one
+    that kept it left out four true closures between different places). Not the choice's
+    L1 cost: the turned block closes a long loop whose drift spreads over all its edges,
+    which the L1 cost counts at full length and the squares, as the noise does, at almost
+    nothing (the parking-garage of ``regime_stress`` draw 97 with wrong odometry steps: L1
+    up by 0.2 rad, 6.6 caps, for a fit at the oracle's accuracy, 1.49 deg mean error where
+    the block's 137 nodes had been 73 deg off). A cut through ``steps`` (odometry that is
+    no jump, :mod:`.odometry_breaks`) costs ``BREAK_PENALTY`` caps more, as in
+    :func:`_breaks_explain_more`: odometry is rarely wrong, and two false edges that happen
+    to agree must not cut a true step (a 50-keyframe chain with 7 false closures and two
+    wrong steps: a true step cut for a wrong step and a false closure, 2.03 -> 7.83 deg
+    mean without the penalty)."""
     inlier, noise, _ = fit
+    if not math.isfinite(noise.sigma):
+        return None
     cap = _cap(noise, initial_threshold)
-    for turn in block_turns(rot, i, j, R, w, cap, initial_threshold, known):
+    turns = block_turns(rot, i, j, R, w, cap, initial_threshold, known, closures)
+    runs = closure_runs(i, j, closures & ~known) if turns and closures is not None else []
+    for turn in turns:
         turned = rot.copy()
         turned[turn.nodes] = rot[turn.nodes] @ turn.turn
         held = inlier | known
@@ -687,9 +725,13 @@ def turn_blocks(
         turned = refine_least_squares(turned, i, j, R, w * held)
         moved = _settle(turned, i, j, R, w, held, known, tree, rounds, max_threshold,
                         initial_threshold)
-        c = GNC_SIGMAS * min(noise.sigma, moved[2].sigma)
-        if (truncated_squares(moved[0], i, j, R, w, c, known)
-                < truncated_squares(rot, i, j, R, w, c, known)):
+        c = GNC_SIGMAS * min(noise.sigma, moved[2].sigma) if math.isfinite(
+            moved[2].sigma) else GNC_SIGMAS * noise.sigma
+        mean_square = noise.axes * (c / GNC_SIGMAS) ** 2
+        cut_steps = 0 if steps is None else int(np.count_nonzero(steps[turn.cut]))
+        if (squares_by_pieces(moved[0], i, j, R, w, c, known, runs, mean_square)
+                + BREAK_PENALTY * cut_steps * c * c
+                < squares_by_pieces(rot, i, j, R, w, c, known, runs, mean_square)):
             return (*moved, turn.relocalized)
     return None
 
