@@ -725,9 +725,9 @@ def turn_blocks(
         turned = refine_least_squares(turned, i, j, R, w * held)
         moved = _settle(turned, i, j, R, w, held, known, tree, rounds, max_threshold,
                         initial_threshold)
-        c = GNC_SIGMAS * min(noise.sigma, moved[2].sigma) if math.isfinite(
-            moved[2].sigma) else GNC_SIGMAS * noise.sigma
-        mean_square = noise.axes * (c / GNC_SIGMAS) ** 2
+        sigma = (min(noise.sigma, moved[2].sigma) if math.isfinite(moved[2].sigma)
+                 else noise.sigma)
+        c, mean_square = GNC_SIGMAS * sigma, noise.axes * sigma ** 2
         cut_steps = 0 if steps is None else int(np.count_nonzero(steps[turn.cut]))
         if (squares_by_pieces(moved[0], i, j, R, w, c, known, runs, mean_square)
                 + BREAK_PENALTY * cut_steps * c * c
