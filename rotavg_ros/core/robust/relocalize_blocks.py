@@ -178,8 +178,12 @@ def block_turns(
         near = geodesic_distance(P[:, None], P[None]) <= tolerance
         group = near[int(np.argmax(near @ w[e]))]
         joins = e[group]
-        pieces = independent_pieces(i, j, np.isin(np.arange(i.size), joins) & runs_of)
-        if pieces + int(np.count_nonzero(~runs_of[joins])) < 2:
+        # Independent pieces: each run of closures one, each other edge one (odometry steps
+        # side by side are no run).
+        joined_closures = np.zeros(i.size, bool)
+        joined_closures[joins[runs_of[joins]]] = True
+        if (independent_pieces(i, j, joined_closures)
+                + int(np.count_nonzero(~runs_of[joins])) < 2):
             continue
         M = project_to_so3(np.einsum("e,eab->ab", w[joins], P[group]))
         if geodesic_distance(M, np.eye(3)) <= tolerance:
@@ -216,6 +220,5 @@ def _cuts(n: int, i: IntArray, j: IntArray, keep: BoolArray, known: BoolArray,
         if len(ends) < 2 or not all({int(x), int(y)} == ends for x, y in zip(a, b, strict=True)):
             continue
         far = int(b[0]) if label[0] == a[0] else int(a[0])
-        side = label == far
-        out.append((run, side, int(side.sum() + np.count_nonzero(label == (ends - {far}).pop()))))
+        out.append((run, label == far, int(np.count_nonzero(np.isin(label, list(ends))))))
     return out
