@@ -169,6 +169,20 @@ def test_default_profile_leaves_out_a_wrong_step_on_the_new_user_chain() -> None
     assert _mean_error(case) < 1.1 * _mean_error(case, case.inlier)
 
 
+def test_a_near_tree_fit_does_not_set_the_break_tests_scale() -> None:
+    # The new-user chain (50 keyframes, 8 true closures) with a lost track at (14, 15):
+    # trusting the step, the fit rejected six of the true closures across it and kept a
+    # near-tree whose two remaining loops gave a noise scale of 0.34 deg (two informative
+    # residuals), against 0.99 deg for the fit without the step; at that scale's cap every
+    # closure of the right fit counted a misfit, and the wrong step stood (50.8 deg mean
+    # against the oracle's 2.07).
+    base = rc.chain_case("short/50/rand0", 50, closures=8, seed=124)
+    case = rc.broken_odometry_case("short/50/rand0/broken1", base, steps=1, seed=24)
+    res, _ = _result(case)
+    assert res.num_distrusted_odometry >= 1
+    assert _mean_error(case) < 1.1 * _mean_error(case, case.inlier)
+
+
 def _solve(case: rc.RegimeCase) -> tuple[float, int]:
     """The default profile on ``case``: (median error deg, odometry edges distrusted)."""
     res, median = _result(case)

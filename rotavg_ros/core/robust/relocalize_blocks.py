@@ -17,7 +17,17 @@ the cap, or trusted) hold such a block to the rest by one piece of evidence only
   chain with a group of seven false closures and a wrong odometry step: nodes 0-41 held by
   the group, the four true closures across rejected, 62.6 deg mean error).
 
-For each such cut that is not trusted, with at least two nodes on each side, the nodes on
+A trusted edge is a cut only where the caller says it may break (odometry: a front end
+that lost its track reports one wrong step, and trusted, it holds everything after it; on
+the issue's new-user chains with one wrong step, 34 graphs of 778 had the far-off nodes held
+by the trusted wrong step alone, two or more true pieces of evidence across rejected: up to
+72 deg mean error). The closures across a stretch of trusted steps cannot tell which of
+them broke (each cut fits them alike): of the bridges with the same rejected edges across,
+only the step with the largest measured rotation is proposed (a lost track's step is a
+random rotation, rarely as small as a keyframe's usual motion), and none where an
+untrusted bridge has the same edges across.
+
+For each such cut, with at least two nodes on each side, the nodes on
 the side away from node 0 turn as ``R_k <- R_k M``: edges inside the block and outside it
 keep their residuals. A rejected edge ``(a, b)`` from the block to the rest predicts ``M =
 R_a^T R_ab R_b`` (``a`` in the block) or ``R_b^T R_ab^T R_a`` (``b`` in the block). The
@@ -46,7 +56,7 @@ from scipy.sparse.csgraph import connected_components
 
 from rotavg_ros.core.robust.closure_runs import closure_runs, independent_pieces
 from rotavg_ros.core.robust.gauss_newton import residual_angles
-from rotavg_ros.core.so3 import geodesic_distance, project_to_so3
+from rotavg_ros.core.so3 import geodesic_distance, project_to_so3, rotation_angle
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 MAX_TURNS = 3
@@ -147,6 +157,7 @@ def block_turns(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray, cap: float,
     tolerance: float, trusted: BoolArray | None = None,
     closures: BoolArray | None = None, limit: int = MAX_TURNS,
+    breakable: BoolArray | None = None,
 ) -> list[BlockTurn]:
     """Up to ``limit`` block turns (module docstring), the best supported first: for each
     cut of the edges ``rot`` explains (residual ``sqrt(w) * angle`` within ``cap``, or
@@ -155,7 +166,8 @@ def block_turns(
     side, the largest group of unexplained crossing edges whose predicted turns lie within
     ``tolerance`` of one of them, where it is at least two independent pieces of evidence
     (:func:`~.closure_runs.independent_pieces`) and its turn lies farther than
-    ``tolerance`` from the block's placement."""
+    ``tolerance`` from the block's placement. ``breakable``: trusted edges whose bridges are
+    cuts too (module docstring)."""
     n = rot.shape[0]
     known = np.zeros(i.size, bool) if trusted is None else trusted
     runs_of = np.zeros(i.size, bool) if closures is None else closures
@@ -163,8 +175,10 @@ def block_turns(
     if keep.all():
         return []
     unexplained = np.flatnonzero(~keep)
-    turns: list[tuple[float, BlockTurn]] = []
-    for cut, side, component in _cuts(n, i, j, keep, known, runs_of):
+    turns: list[tuple[tuple[float, bool, float], BlockTurn]] = []
+    may_break = (np.zeros(i.size, bool) if breakable is None else breakable) & known
+    step_angle = rotation_angle(R) if may_break.any() else None
+    for cut, side, component in _cuts(n, i, j, keep, known, runs_of, may_break, step_angle):
         if side.sum() < 2 or component - side.sum() < 2:
             continue
         in_a, in_b = side[i[unexplained]], side[j[unexplained]]
@@ -190,23 +204,38 @@ def block_turns(
             continue
         nodes = np.flatnonzero(side)
         smaller = min(nodes.size, component - nodes.size)
-        turns.append((float(w[joins].sum()), BlockTurn(nodes, M, cut, joins, smaller)))
-    turns.sort(key=lambda t: -t[0])
-    return [turn for _, turn in turns[:limit]]
+        # The best supported first; the same joins propose the same turn from any of
+        # their cuts: an untrusted cut before a trusted one, a larger step before a
+        # smaller, and a trusted cut only where no cut before it has those joins.
+        rank = (-float(w[joins].sum()), bool(known[cut].any()),
+                0.0 if step_angle is None else -float(step_angle[cut].max()))
+        turns.append((rank, BlockTurn(nodes, M, cut, joins, smaller)))
+    turns.sort(key=lambda t: t[0])
+    proposed: list[BlockTurn] = []
+    for _, turn in turns:
+        if not (known[turn.cut].any()
+                and any(np.array_equal(turn.joins, p.joins) for p in proposed)):
+            proposed.append(turn)
+    return proposed[:limit]
 
 
 def _cuts(n: int, i: IntArray, j: IntArray, keep: BoolArray, known: BoolArray,
-          closures: BoolArray) -> list[tuple[IntArray, BoolArray, int]]:
+          closures: BoolArray, may_break: BoolArray, step_angle: FloatArray | None,
+          ) -> list[tuple[IntArray, BoolArray, int]]:
     """``(cut edges, side, component size)`` for each bridge of the ``keep`` edges that is
-    not ``known``, then each run of kept ``closures`` (not ``known``) whose removal splits
-    its component in two with the whole run between them; ``side``: the nodes of the side
-    away from node 0 (for a run where neither side holds node 0, the side of the run's first
-    edge's first end)."""
+    not ``known`` or ``may_break`` (of those with the same unexplained edges across, the one
+    with the largest ``step_angle``, none where a bridge not known has them too), then each
+    run of kept ``closures`` (not ``known``) whose removal splits its component in two with
+    the whole run between them; ``side``: the nodes of the side away from node 0 (for a run
+    where neither side holds node 0, the side of the run's first edge's first end)."""
     out: list[tuple[IntArray, BoolArray, int]] = []
     bridges = find_bridges(n, i, j, keep)
-    for bridge, v in zip(bridges.edges.tolist(), bridges.child.tolist(), strict=True):
-        if known[bridge]:
-            continue
+    candidates = ~known[bridges.edges] | may_break[bridges.edges]
+    edges, child = bridges.edges[candidates], bridges.child[candidates]
+    if step_angle is not None and edges.size:
+        edges, child = _one_step_per_crossing(bridges, edges, child, i, j, keep, known,
+                                              step_angle)
+    for bridge, v in zip(edges.tolist(), child.tolist(), strict=True):
         lo, hi = bridges.pre[v], bridges.pre[v] + bridges.size[v]
         out.append((np.array([bridge]), (bridges.pre >= lo) & (bridges.pre < hi),
                     int(bridges.component_size[v])))
@@ -222,3 +251,30 @@ def _cuts(n: int, i: IntArray, j: IntArray, keep: BoolArray, known: BoolArray,
         far = int(b[0]) if label[0] == a[0] else int(a[0])
         out.append((run, label == far, int(np.count_nonzero(np.isin(label, list(ends))))))
     return out
+
+
+def _one_step_per_crossing(bridges: Bridges, edges: IntArray, child: IntArray, i: IntArray,
+                           j: IntArray, keep: BoolArray, known: BoolArray,
+                           step_angle: FloatArray) -> tuple[IntArray, IntArray]:
+    """The candidate bridges ``edges`` (with their deeper ends ``child``) less the known
+    ones that no unexplained edge crosses twice over (fewer than two across), or whose
+    unexplained edges across are those of an unknown bridge or of a known one with a larger
+    ``step_angle``: the edges across cannot tell those cuts apart."""
+    unexplained = np.flatnonzero(~keep)
+    pa, pb = bridges.pre[i[unexplained]], bridges.pre[j[unexplained]]
+    lo = bridges.pre[child][:, None]
+    hi = lo + bridges.size[child][:, None]
+    across = ((pa >= lo) & (pa < hi)) != ((pb >= lo) & (pb < hi))
+    trusted = known[edges]
+    keys = [row.tobytes() for row in np.packbits(across, axis=1)]
+    taken = {keys[k] for k in np.flatnonzero(~trusted)}
+    best: dict[bytes, int] = {}
+    for k in np.flatnonzero(trusted & (across.sum(axis=1) >= 2)).tolist():
+        if keys[k] in taken:
+            continue
+        if keys[k] not in best or step_angle[edges[k]] > step_angle[edges[best[keys[k]]]]:
+            best[keys[k]] = k
+    chosen = np.zeros(edges.size, bool)
+    chosen[~trusted] = True
+    chosen[list(best.values())] = True
+    return edges[chosen], child[chosen]

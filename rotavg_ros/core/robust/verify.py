@@ -112,6 +112,7 @@ from rotavg_ros.core.robust.noise import (
 from rotavg_ros.core.robust.odometry_breaks import (
     OdometrySuspects,
     cuts_onto_jumps,
+    odometry_jumps,
     suspect_odometry,
 )
 from rotavg_ros.core.robust.odometry_start import odometry_start
@@ -144,6 +145,14 @@ the fit without trusting them has truncated squares lower, by this many caps for
 suspect it leaves out that is only a misfit, no jump pointed at or rare (besides that
 edge's own cap), than the fit that trusted them: cutting such a step must free several
 closures (see :func:`_breaks_explain_more`)."""
+
+MIN_NOISE_RESIDUALS = 5
+"""Fewest informative standardized residuals (:func:`standardized_residuals`) a noise
+model is fitted to. In the break test (:func:`_breaks_explain_more`) a fit's scale counts
+only where this many of its inliers are informative: a fit that trusts a wrong odometry step
+and rejects the true closures across it keeps a near-tree, whose few remaining loops give a
+scale from two or three residuals (a 50-keyframe chain: 0.34 deg against the 0.99 deg of
+the fit without the step, whose cap then counted every closure of the right fit a misfit)."""
 
 PAIRWISE_ALWAYS_UP_TO = 200
 """The tight pass runs its pairwise closure test whatever its starts say on a graph with at
@@ -365,7 +374,7 @@ def _fit_and_classify(
     """Noise model of the standardized residuals, the edges within its threshold, and t."""
     t, spread = standardized_residuals(rot, i, j, R, w, fit, tree)
     informative = np.isfinite(t)
-    if informative.sum() < 5:  # too little to fit a noise model: nothing changes
+    if informative.sum() < MIN_NOISE_RESIDUALS:  # too little to fit a model: nothing changes
         return NoiseModel(math.nan, 1.0, max_threshold), fit.copy(), t
     noise = fit_noise(t[informative], max_threshold=max_threshold, scale=spread[informative])
     # Each edge by its own posterior (the outlier density depends on its scale); edges
@@ -637,7 +646,8 @@ def robust_resolve(
                                                              moved_inlier, max_threshold, tree)
                 untrusting = TightFit(moved_rot, moved_inlier, moved_noise, moved_t,
                                       untrusting.runs_left_out)
-            if _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, suspects):
+            if _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, suspects,
+                                    initial_threshold):
                 tight_fit, known, distrusted = untrusting, trusted, suspects.edges
                 jumps = suspects.jumps
         rot, inlier, noise, t = (tight_fit.rotations, tight_fit.inlier, tight_fit.noise,
@@ -659,15 +669,22 @@ def robust_resolve(
             cap = _cap(noise, initial_threshold)
     # A block of nodes that one wrong edge or one run of closures alone holds to the rest
     # turns where its rejected edges to the rest agree (:func:`turn_blocks`).
+    # A trusted step may be cut there too (a wrong step the break test did not catch); a
+    # jump cut so pays no penalty, as one the break test cut.
     turned = turn_blocks(rot, i, j, R, w, (inlier, noise, t), known, tree=tree,
                          rounds=rounds, max_threshold=max_threshold,
                          initial_threshold=initial_threshold,
                          closures=~odometry if has_odometry else None,
-                         steps=odometry & ~jumps)
+                         steps=odometry & ~jumps & ~(known & odometry_jumps(R, odometry)),
+                         breakable=odometry)
     if turned is not None:
-        rot, inlier, noise, t, moved_nodes = turned
+        rot, inlier, noise, t, moved_nodes, still_trusted = turned
         relocalized += moved_nodes
         cap = _cap(noise, initial_threshold)
+        if not np.array_equal(still_trusted, known):
+            cut = known & ~still_trusted
+            distrusted = cut if distrusted is None else distrusted | cut
+            known = still_trusted
     # Least squares on a sparse graph has local minima (a block of nodes turned the wrong
     # way, every edge on its rim bent a little): the same inliers from the chordal
     # relaxation's solution may fit them better.
@@ -686,20 +703,24 @@ def turn_blocks(
     fit: tuple[BoolArray, NoiseModel, FloatArray], known: BoolArray, *, tree: BoolArray,
     rounds: int, max_threshold: float, initial_threshold: float,
     closures: BoolArray | None = None, steps: BoolArray | None = None,
-) -> tuple[FloatArray, BoolArray, NoiseModel, FloatArray, int] | None:
+    breakable: BoolArray | None = None,
+) -> tuple[FloatArray, BoolArray, NoiseModel, FloatArray, int, BoolArray] | None:
     """Step 5's block turns: the first turn proposed by
     :func:`~.relocalize_blocks.block_turns` (at the fit's cap, ``initial_threshold`` the
     tolerance of the agreement; runs of the ``closures`` edges, None: no runs) that
     stands, as step 3's fit (rotations, inliers, noise, standardized residuals) plus the
-    nodes on the smaller side of its cut; None where none stands (or the fit's noise scale
-    is not finite). ``fit``: the inliers, noise model and standardized residuals of ``rot``.
+    nodes on the smaller side of its cut and the edges still trusted (``known`` less a cut
+    through the ``breakable`` ones); None where none stands (or the fit's noise scale is not
+    finite). ``fit``: the inliers, noise model and standardized residuals of ``rot``.
 
     Each turn is re-fitted on the inliers without the cut edges and with the edges that
     agree on the turn, then settles (step 3), and stands where that lowers the truncated
     squares (the GNC's objective, at ``GNC_SIGMAS`` times the lower of the two fits' noise
-    scales) with each run of closures one piece of evidence (:func:`squares_by_pieces`:
-    the fit that cut a run of seven false closures must not pay seven caps where the one
-    that kept it left out four true closures between different places). Not the choice's
+    scales, of those resting on enough residuals, :func:`_judged_scale`, at most
+    ``initial_threshold``) with each run of closures one piece of evidence
+    (:func:`squares_by_pieces`: the fit that cut a run of seven false closures must not
+    pay seven caps where the one that kept it left out four true closures between
+    different places). Not the choice's
     L1 cost: the turned block closes a long loop whose drift spreads over all its edges,
     which the L1 cost counts at full length and the squares, as the noise does, at almost
     nothing (the parking-garage of ``regime_stress`` draw 97 with wrong odometry steps: L1
@@ -710,29 +731,31 @@ def turn_blocks(
     to agree must not cut a true step (a 50-keyframe chain with 7 false closures and two
     wrong steps: a true step cut for a wrong step and a false closure, 2.03 -> 7.83 deg
     mean without the penalty)."""
-    inlier, noise, _ = fit
+    inlier, noise, t_fit = fit
     if not math.isfinite(noise.sigma):
         return None
     cap = _cap(noise, initial_threshold)
-    turns = block_turns(rot, i, j, R, w, cap, initial_threshold, known, closures)
+    turns = block_turns(rot, i, j, R, w, cap, initial_threshold, known, closures,
+                        breakable=breakable)
     runs = closure_runs(i, j, closures & ~known) if turns and closures is not None else []
     for turn in turns:
         turned = rot.copy()
         turned[turn.nodes] = rot[turn.nodes] @ turn.turn
+        trusted = known.copy()
+        trusted[turn.cut] = False  # (a trusted step cut: capped in both fits' squares)
         held = inlier | known
         held[turn.cut] = False
         held[turn.joins] = True
         turned = refine_least_squares(turned, i, j, R, w * held)
-        moved = _settle(turned, i, j, R, w, held, known, tree, rounds, max_threshold,
+        moved = _settle(turned, i, j, R, w, held, trusted, tree, rounds, max_threshold,
                         initial_threshold)
-        sigma = (min(noise.sigma, moved[2].sigma) if math.isfinite(moved[2].sigma)
-                 else noise.sigma)
-        c, mean_square = GNC_SIGMAS * sigma, noise.axes * sigma ** 2
+        sigma = _judged_scale((noise, t_fit, inlier), (moved[2], moved[3], moved[1]))
+        c, mean_square = min(GNC_SIGMAS * sigma, initial_threshold), noise.axes * sigma ** 2
         cut_steps = 0 if steps is None else int(np.count_nonzero(steps[turn.cut]))
-        if (squares_by_pieces(moved[0], i, j, R, w, c, known, runs, mean_square)
+        if (squares_by_pieces(moved[0], i, j, R, w, c, trusted, runs, mean_square)
                 + BREAK_PENALTY * cut_steps * c * c
-                < squares_by_pieces(rot, i, j, R, w, c, known, runs, mean_square)):
-            return (*moved, turn.relocalized)
+                < squares_by_pieces(rot, i, j, R, w, c, trusted, runs, mean_square)):
+            return (*moved, turn.relocalized, trusted)
     return None
 
 
@@ -856,12 +879,14 @@ def _tight_pass(
 
 def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
                          j: IntArray, R: FloatArray, w: FloatArray, trusted: BoolArray,
-                         suspects: OdometrySuspects) -> bool:
+                         suspects: OdometrySuspects, initial_threshold: float) -> bool:
     """Whether the tight pass with the ``suspects`` (odometry) as ordinary edges explains
     the data better than the pass that trusted them: its truncated squares
     (:func:`truncated_squares`, at ``GNC_SIGMAS`` times the lower of the two fits' noise
-    scales, the suspects capped in both) plus ``BREAK_PENALTY`` caps for each suspect it
-    leaves out that is not among ``suspects.jumps`` are below the trusting pass's. Odometry
+    scales, of those resting on enough residuals, :func:`_judged_scale`, at most
+    ``initial_threshold`` as in the GNC; the suspects capped in both) plus
+    ``BREAK_PENALTY`` caps for each suspect it leaves out that is not among
+    ``suspects.jumps`` are below the trusting pass's. Odometry
     is rarely wrong, and a group of consistent false closures can claim that a true step
     is: cutting a step suspect only as a misfit must free several closures, and more than
     one run of them (:func:`~.closure_runs.independent_pieces`): the closures of one run,
@@ -871,7 +896,9 @@ def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
     cut."""
     if not (math.isfinite(trusting.noise.sigma) and math.isfinite(untrusting.noise.sigma)):
         return False
-    c = GNC_SIGMAS * min(trusting.noise.sigma, untrusting.noise.sigma)
+    c = min(GNC_SIGMAS * _judged_scale(*((f.noise, f.t, f.inlier)
+                                           for f in (trusting, untrusting))),
+            initial_threshold)
     cut = int(np.count_nonzero(suspects.edges & ~untrusting.inlier & ~suspects.jumps))
     freed = untrusting.inlier & ~trusting.inlier & ~(trusted | suspects.edges)
     if cut and independent_pieces(i, j, freed) <= 1:
@@ -879,6 +906,16 @@ def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
     return bool(truncated_squares(untrusting.rotations, i, j, R, w, c, trusted)
                 + BREAK_PENALTY * cut * c * c
                 < truncated_squares(trusting.rotations, i, j, R, w, c, trusted))
+
+
+def _judged_scale(*fits: tuple[NoiseModel, FloatArray, BoolArray]) -> float:
+    """The lowest finite noise scale of the ``(noise, t, inlier)`` fits, among those that
+    rest on at least ``MIN_NOISE_RESIDUALS`` informative inliers (finite ``t``); the lowest
+    finite one where none does (NaN where none is finite)."""
+    finite = [f for f in fits if math.isfinite(f[0].sigma)]
+    resting = [f for f in finite
+               if np.count_nonzero(np.isfinite(f[1]) & f[2]) >= MIN_NOISE_RESIDUALS]
+    return min((f[0].sigma for f in resting or finite), default=math.nan)
 
 
 def _leave_runs_out(
