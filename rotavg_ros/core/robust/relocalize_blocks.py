@@ -257,9 +257,9 @@ def _one_step_per_crossing(bridges: Bridges, edges: IntArray, child: IntArray, i
                            j: IntArray, keep: BoolArray, known: BoolArray,
                            step_angle: FloatArray) -> tuple[IntArray, IntArray]:
     """The candidate bridges ``edges`` (with their deeper ends ``child``) less the known
-    ones that no unexplained edge crosses twice over (fewer than two across), or whose
-    unexplained edges across are those of an unknown bridge or of a known one with a larger
-    ``step_angle``: the edges across cannot tell those cuts apart."""
+    ones that fewer than two unexplained edges cross, or whose unexplained edges across are
+    those of an unknown bridge or of a known one with a larger ``step_angle``: the edges
+    across cannot tell those cuts apart."""
     unexplained = np.flatnonzero(~keep)
     pa, pb = bridges.pre[i[unexplained]], bridges.pre[j[unexplained]]
     lo = bridges.pre[child][:, None]

@@ -720,12 +720,12 @@ def turn_blocks(
     ``initial_threshold``) with each run of closures one piece of evidence
     (:func:`squares_by_pieces`: the fit that cut a run of seven false closures must not
     pay seven caps where the one that kept it left out four true closures between
-    different places). Not the choice's
-    L1 cost: the turned block closes a long loop whose drift spreads over all its edges,
-    which the L1 cost counts at full length and the squares, as the noise does, at almost
-    nothing (the parking-garage of ``regime_stress`` draw 97 with wrong odometry steps: L1
-    up by 0.2 rad, 6.6 caps, for a fit at the oracle's accuracy, 1.49 deg mean error where
-    the block's 137 nodes had been 73 deg off). A cut through ``steps`` (odometry that is
+    different places). Not the choice's L1 cost: the turned block closes a long loop whose
+    drift spreads over all its edges, which the L1 cost counts at full length and the
+    squares, as the noise does, at almost nothing (the parking-garage of ``regime_stress``
+    draw 97 with wrong odometry steps: L1 up by 0.2 rad, 6.6 caps, for a fit at the
+    oracle's accuracy, 1.49 deg mean error where the block's 137 nodes had been 73 deg
+    off). A cut through ``steps`` (odometry that is
     no jump, :mod:`.odometry_breaks`) costs ``BREAK_PENALTY`` caps more, as in
     :func:`_breaks_explain_more`: odometry is rarely wrong, and two false edges that happen
     to agree must not cut a true step (a 50-keyframe chain with 7 false closures and two
