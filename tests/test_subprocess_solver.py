@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from rotavg_ros.app.solver_process import SubprocessSolver
+from rotavg_ros.app.solver_process import PARENT_CHECK_PERIOD, SubprocessSolver
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.so3 import random_rotations
 from rotavg_ros.core.view_graph import ViewGraph
@@ -120,3 +123,39 @@ def test_abort_ends_a_running_solve_at_once_and_the_next_one_gets_a_new_child() 
         assert np.allclose(res.rotations, expected, atol=1e-6)
     finally:
         solver.close()
+
+
+def _gone(pid: int) -> bool:
+    """Whether process ``pid`` has exited (a zombie nobody reaped counts as exited)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="reads /proc")
+def test_the_child_exits_when_its_parent_is_killed() -> None:
+    # A node killed outright (SIGKILL, the OOM killer) cannot shut its child down, and the
+    # child, blocked on its work queue, used to stay forever with the solver's memory.
+    script = ("import os, time\n"
+              "from rotavg_ros.app.solver_process import SubprocessSolver\n"
+              "s = SubprocessSolver()\n"
+              "print(s._get_pool().submit(os.getpid).result(timeout=120), flush=True)\n"
+              "time.sleep(600)\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        filter(None, [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")])))
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE,
+                              text=True, env=env)
+    try:
+        assert parent.stdout is not None
+        child = int(parent.stdout.readline())
+        assert not _gone(child)
+        parent.kill()
+        parent.wait(timeout=10)
+        deadline = time.monotonic() + 10 * PARENT_CHECK_PERIOD
+        while not _gone(child) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert _gone(child), "the solver child outlived its killed parent"
+    finally:
+        parent.kill()

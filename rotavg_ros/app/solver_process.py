@@ -6,6 +6,7 @@ import multiprocessing
 import os
 import signal
 import threading
+import time
 from collections.abc import Hashable, Mapping
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -110,13 +111,31 @@ def _import_solver() -> None:
     import rotavg_ros.core.solver  # noqa: F401
 
 
+PARENT_CHECK_PERIOD = 1.0
+"""Seconds between the child's checks that its parent is still alive."""
+
+
 def _init_child(niceness: int) -> None:
-    """Child-process initializer: raise the nice value by ``niceness``; ignore SIGINT.
+    """Child-process initializer: raise the nice value by ``niceness``; ignore SIGINT; exit
+    when the parent is gone.
 
     A Ctrl-C in a terminal reaches the whole process group; the parent handles it and
-    shuts this child down, so the child need not die mid-queue with a traceback.
+    shuts this child down, so the child need not die mid-queue with a traceback. A parent
+    killed outright (SIGKILL, the OOM killer) cannot: the child would wait for work forever
+    (it holds its own end of the work queue, so the queue never reports the parent gone),
+    keeping the solver's memory. A daemon thread watches for that and ends the child.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if niceness > 0 and hasattr(os, "nice"):
         os.nice(niceness)
+    parent = os.getppid()
+    threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True,
+                     name="parent_watch").start()
+
+
+def _exit_when_orphaned(parent: int) -> None:
+    """End this process once its parent is no longer ``parent`` (it died: re-parented)."""
+    while os.getppid() == parent:
+        time.sleep(PARENT_CHECK_PERIOD)
+    os._exit(1)
 
