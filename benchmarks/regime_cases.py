@@ -291,6 +291,45 @@ def chain_trajectory(n: int, rng: np.random.Generator, step_deg: float = 4.0) ->
     return R
 
 
+CAR_TURNS_DEG = (90.0, -90.0, 90.0, -90.0, 45.0, -45.0, 180.0)
+"""The turns :func:`car_trajectory` draws from (right angles twice as often)."""
+
+
+def car_trajectory(n: int, rng: np.random.Generator) -> FloatArray:
+    """A car's world-to-node rotations between sparse keyframes: straight runs of 8-39
+    keyframes (heading noise 0.5 deg a step), each followed by a turn from
+    :data:`CAR_TURNS_DEG` spread over 2-4 keyframes (steps of 11-90 deg); pitch and roll a
+    slow random walk of 0.06 deg a step (a road's slopes), about a random heading. What
+    this tests, against :func:`chain_trajectory`'s smooth walk: steps of two sizes, most
+    small and one in ten large, as parking-garage's own trajectory has (422 of its 1,660
+    steps more than 5 robust spreads above the median step), so that a large step is no
+    sign of a lost track."""
+    yaw = np.empty(n)
+    heading, k = float(rng.uniform(-np.pi, np.pi)), 0
+    while k < n:
+        for _ in range(int(rng.integers(8, 40))):
+            if k == n:
+                break
+            heading += np.radians(rng.normal(0.0, 0.5))
+            yaw[k], k = heading, k + 1
+        turn = np.radians(float(rng.choice(CAR_TURNS_DEG)))
+        spread = int(rng.integers(2, 5))
+        for _ in range(spread):
+            if k == n:
+                break
+            heading += turn / spread
+            yaw[k], k = heading, k + 1
+    tilt = np.cumsum(rng.normal(0.0, np.radians(0.06), (n, 2)), axis=0)
+    body_to_world = (exp_map(np.stack([np.zeros(n), np.zeros(n), yaw], axis=1))
+                     @ exp_map(np.concatenate([tilt, np.zeros((n, 1))], axis=1)))
+    return np.ascontiguousarray(np.swapaxes(body_to_world, 1, 2))
+
+
+TRAJECTORIES: dict[str, Callable[[int, np.random.Generator], FloatArray]] = {
+    "smooth": chain_trajectory, "car": car_trajectory}
+"""The chain generators' ground-truth rotations by name (``trajectory``)."""
+
+
 def _closure_rules(num_nodes: int, odometry: list[tuple[int, int]]) -> tuple[
         Callable[[int, int], bool], Callable[[int, int], None], set[tuple[int, int]]]:
     """``(bad, add, used)``: the placement rules for loop closures (ends at least 20 apart,
@@ -343,8 +382,9 @@ def _random_pairs(num_nodes: int, count: int, rng: np.random.Generator,
 def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float = 0.0,
                false_grouped: float = 0.0, odo_noise_deg: float = 1.5,
                loop_noise_deg: float = 2.0, seed: int = 0,
-               noise_model: str = "folded") -> RegimeCase:
-    """An odometry chain ``(k, k+1)`` plus sparse loop closures and no triangles.
+               noise_model: str = "folded", trajectory: str = "smooth") -> RegimeCase:
+    """An odometry chain ``(k, k+1)`` plus sparse loop closures and no triangles, along
+    ``trajectory`` (:data:`TRAJECTORIES`).
 
     ``closures`` true loop closures between keyframes at least 20 apart, each rejected
     when it would close a triangle (its ends share a neighbour) or when it shares both
@@ -354,7 +394,7 @@ def chain_case(name: str, num_nodes: int, *, closures: int, false_random: float 
     closures; these fractions are of the final closure count.
     """
     rng = rng_for(name, seed)
-    gt = chain_trajectory(num_nodes, rng)
+    gt = TRAJECTORIES[trajectory](num_nodes, rng)
     n_false = false_random + false_grouped
     total = int(round(closures / max(1e-9, 1.0 - n_false)))
     n_rand = int(round(false_random * total))
@@ -672,14 +712,15 @@ def pieces_case(name: str, num_nodes: int, *, closures: int, sessions: int = 1,
 def revisit_case(name: str, lap_nodes: int, laps: int, *, runs: int,
                  false_random: float = 0.0, odo_noise_deg: float = 1.0,
                  loop_noise_deg: float = 2.0, seed: int = 0,
-                 noise_model: str = "folded") -> RegimeCase:
-    """A route driven ``laps`` times: every lap's rotations are the first lap's, each turned
-    by a random 3 deg (RMS) rotation. The true closures come in ``runs`` runs, as a front
-    end finds them on a revisited stretch: 6-19 closures from every second keyframe of a
-    stretch of one lap to the same place (give or take 2 keyframes) on another. Random false
-    closures are ``false_random`` of all the closures."""
+                 noise_model: str = "folded", trajectory: str = "smooth") -> RegimeCase:
+    """A route driven ``laps`` times: every lap's rotations are the first lap's (along
+    ``trajectory``, :data:`TRAJECTORIES`), each turned by a random 3 deg (RMS) rotation.
+    The true closures come in ``runs`` runs, as a front end finds them on a revisited
+    stretch: 6-19 closures from every second keyframe of a stretch of one lap to the same
+    place (give or take 2 keyframes) on another. Random false closures are
+    ``false_random`` of all the closures."""
     rng = rng_for(name, seed)
-    first = chain_trajectory(lap_nodes, rng)
+    first = TRAJECTORIES[trajectory](lap_nodes, rng)
     turn = np.radians(3.0) / np.sqrt(3.0)
     gt = np.concatenate([exp_map(rng.normal(0.0, turn, (lap_nodes, 3))) @ first
                          for _ in range(laps)])

@@ -1,6 +1,6 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Sixty cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+Sixty-two cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
 with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
@@ -29,7 +29,10 @@ and sphere2500 at 0.1 deg of noise with 10% false closures; and a 16^3 lattice p
 graph with 10% false closures, grid3D's topology at 4,096 poses, whose sparse factors fill
 in heavily (:func:`~benchmarks.regime_cases.lattice_case`); and a planar robot walking a
 grid city, the Manhattan datasets' kind of graph (3,500 poses, closures at revisited
-corners, 20% false, 5 deg of heading noise; :func:`~benchmarks.regime_cases.grid_walk_case`).
+corners, 20% false, 5 deg of heading noise; :func:`~benchmarks.regime_cases.grid_walk_case`);
+and two along a car's trajectory (straight runs and sharp turns,
+:func:`~benchmarks.regime_cases.car_trajectory`): a 1,000-keyframe chain with 20% false
+closures and a route driven twice with 30% false.
 They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
@@ -160,6 +163,10 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                false_random=0.25),
         revisit("stress/revisit/3x400-clean", 400, 3, runs=12),
         revisit("stress/revisit/3x400-rand20", 400, 3, runs=12, false_random=0.20),
+        chain("stress/car/chain/1000/rand20", 1000, closures=40, false_random=0.20,
+              trajectory="car"),
+        revisit("stress/car/revisit/2x400-rand30", 400, 2, runs=8, false_random=0.30,
+                trajectory="car"),
         dense("stress/dense200-deg10/out30-noise3", 200, 10, outliers=0.3, noise_deg=3.0),
         dense("stress/dense400/out30-noise5", 400, 40, outliers=0.3, noise_deg=5.0),
         dense("stress/dense100/out70", 100, 50, outliers=0.7),

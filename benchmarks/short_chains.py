@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -87,9 +88,9 @@ def main() -> int:
                 for seed in seed_range(args.seeds):
                     name = f"short/{nodes}/{label}"
                     try:
+                        share: dict[str, Any] = {kind: false / (TRUE_CLOSURES + false)}
                         case = chain_case(name, nodes, closures=TRUE_CLOSURES, seed=100 + seed,
-                                          noise_model=model,
-                                          **{kind: false / (TRUE_CLOSURES + false)})
+                                          noise_model=model, **share)
                     except ValueError as exc:
                         print(f"{model:7s} {name:18s} draw {seed:2d}: skipped ({exc})")
                         continue

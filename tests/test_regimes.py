@@ -4,6 +4,7 @@ solver runs and is scored on tiny cases (no claim that it beats the peers)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -205,6 +206,28 @@ def test_grid_walk_case_closes_loops_at_revisited_corners() -> None:
         rc.grid_walk_case("test/grid-walk", 30, 8, closures=500)
 
 
+def test_car_trajectory_drives_straight_and_turns_sharply() -> None:
+    """Most steps small (straight runs), about one in ten at least 10 deg (the turns), none
+    much above 90 deg; rotations proper; pitch and roll small; the same draw twice; the chain and
+    route generators take it by name and keep the smooth walk by default."""
+    from rotavg_ros.core.so3 import rotation_angle
+
+    gt = rc.car_trajectory(2000, np.random.default_rng(0))
+    steps = np.degrees(rotation_angle(gt[1:] @ np.swapaxes(gt[:-1], 1, 2)))
+    assert np.median(steps) < 1.0 and 0.05 < np.mean(steps > 10.0) < 0.2
+    assert steps.max() < 91.0  # (180 deg over 2 keyframes, plus the slopes)
+    assert np.allclose(gt @ np.swapaxes(gt, 1, 2), np.eye(3)) and np.all(np.linalg.det(gt) > 0)
+    assert np.degrees(np.arccos(np.clip(gt[:, 2, 2], -1.0, 1.0))).max() < 10.0  # tilt
+    assert np.array_equal(gt, rc.car_trajectory(2000, np.random.default_rng(0)))
+    car = rc.chain_case("test/car", 300, closures=10, trajectory="car")
+    smooth = rc.chain_case("test/car", 300, closures=10)
+    assert not np.allclose(car.gt, smooth.gt)
+    assert np.array_equal(smooth.gt, rc.chain_case("test/car", 300, closures=10,
+                                                   trajectory="smooth").gt)
+    route = rc.revisit_case("test/car-route", 100, 2, runs=3, trajectory="car")
+    assert route.num_nodes == 200
+
+
 def test_large_graphs_are_as_large_as_they_say_and_deterministic() -> None:
     """``benchmarks.large_graphs``: five distinct graphs of 2,000 nodes or more, each with
     its true edges known (the oracle's) and false edges in it, drawn the same twice."""
@@ -385,9 +408,9 @@ def test_default_profile_rejects_false_closures_that_bend_a_short_chain(
     left out none (the group lifted the redundancy of every edge to 0.23), so the tight pass
     did not run at all: 11.1 deg mean against the oracle's 1.8. It now runs wherever the
     closures are few, whatever step 3 found."""
-    false = 2 / 10 if kind == "false_random" else 7 / 15
+    share: dict[str, Any] = {kind: 2 / 10 if kind == "false_random" else 7 / 15}
     case = rc.chain_case(name, int(name.split("/")[1]), closures=8, seed=seed,
-                         noise_model=model, **{kind: false})
+                         noise_model=model, **share)
     assert case.inlier is not None
     default, ours, best = default_and_oracle_errors(case)
     assert np.array_equal(default.kept, case.inlier)

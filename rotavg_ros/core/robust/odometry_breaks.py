@@ -118,10 +118,24 @@ def suspect_odometry(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
     broken = ((rejected_across >= MIN_REJECTED_ACROSS)
               & (rejected_across >= REJECTED_PER_KEPT * (kept_across + 1)))
     pointed_jumps = odometry & broken[np.minimum(i, j)] & jump
-    rare = np.count_nonzero(jump) <= max(RARE_JUMPS_AT_LEAST,
-                                         RARE_JUMPS * np.count_nonzero(odometry))
-    jumps = pointed_jumps | (jump & rare)
+    jumps = pointed_jumps | (jump & _rare(jump, odometry))
     return OdometrySuspects((odometry & misfit) | jumps, jumps)
+
+
+def rare_jumps(R: FloatArray, odometry: BoolArray) -> BoolArray:
+    """The jumps (:func:`odometry_jumps`) where they are rare (at most ``RARE_JUMPS`` of the
+    steps, or ``RARE_JUMPS_AT_LEAST``), else none: where large steps are common, a step's
+    size alone says nothing of a lost track (a car turning at corners between sparse
+    keyframes, one step in ten; parking-garage's own trajectory, 422 of its 1,660 steps)."""
+    jump = odometry_jumps(R, odometry)
+    return jump & _rare(jump, odometry)
+
+
+def _rare(jump: BoolArray, odometry: BoolArray) -> bool:
+    """Whether the ``jump`` steps are rare among the ``odometry`` ones (:data:`RARE_JUMPS`,
+    :data:`RARE_JUMPS_AT_LEAST`)."""
+    return bool(np.count_nonzero(jump) <= max(RARE_JUMPS_AT_LEAST,
+                                               RARE_JUMPS * np.count_nonzero(odometry)))
 
 
 def odometry_jumps(R: FloatArray, odometry: BoolArray) -> BoolArray:

@@ -112,7 +112,7 @@ from rotavg_ros.core.robust.noise import (
 from rotavg_ros.core.robust.odometry_breaks import (
     OdometrySuspects,
     cuts_onto_jumps,
-    odometry_jumps,
+    rare_jumps,
     suspect_odometry,
 )
 from rotavg_ros.core.robust.odometry_start import odometry_start
@@ -682,12 +682,13 @@ def robust_resolve(
     # A block of nodes that one wrong edge or one run of closures alone holds to the rest
     # turns where its rejected edges to the rest agree (:func:`turn_blocks`).
     # A trusted step may be cut there too (a wrong step the break test did not catch); a
-    # jump cut so pays no penalty, as one the break test cut.
+    # jump cut so pays no penalty, as one the break test cut, where jumps are rare (where
+    # they are common, a car's turns, a step's size is no evidence of a lost track).
     turned = turn_blocks(rot, i, j, R, w, (inlier, noise, t), known, tree=tree,
                          rounds=rounds, max_threshold=max_threshold,
                          initial_threshold=initial_threshold,
                          closures=~odometry if has_odometry else None,
-                         steps=odometry & ~jumps & ~(known & odometry_jumps(R, odometry)),
+                         steps=odometry & ~jumps & ~(known & rare_jumps(R, odometry)),
                          breakable=odometry)
     if turned is not None:
         rot, inlier, noise, t, moved_nodes, still_trusted = turned
@@ -738,7 +739,7 @@ def turn_blocks(
     draw 97 with wrong odometry steps: L1 up by 0.2 rad, 6.6 caps, for a fit at the
     oracle's accuracy, 1.49 deg mean error where the block's 137 nodes had been 73 deg
     off). A cut through ``steps`` (odometry that is
-    no jump, :mod:`.odometry_breaks`) costs ``BREAK_PENALTY`` caps more, as in
+    no rare jump, :func:`~.odometry_breaks.rare_jumps`) costs ``BREAK_PENALTY`` caps more, as in
     :func:`_breaks_explain_more`: odometry is rarely wrong, and two false edges that happen
     to agree must not cut a true step (a 50-keyframe chain with 7 false closures and two
     wrong steps: a true step cut for a wrong step and a false closure, 2.03 -> 7.83 deg
