@@ -1,6 +1,6 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Sixty-two cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+Sixty-three cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
 with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
@@ -30,9 +30,10 @@ graph with 10% false closures, grid3D's topology at 4,096 poses, whose sparse fa
 in heavily (:func:`~benchmarks.regime_cases.lattice_case`); and a planar robot walking a
 grid city, the Manhattan datasets' kind of graph (3,500 poses, closures at revisited
 corners, 20% false, 5 deg of heading noise; :func:`~benchmarks.regime_cases.grid_walk_case`);
-and two along a car's trajectory (straight runs and sharp turns,
+and three along a car's trajectory (straight runs and sharp turns,
 :func:`~benchmarks.regime_cases.car_trajectory`): a 1,000-keyframe chain with 20% false
-closures and a route driven twice with 30% false.
+closures, a route driven twice with 30% false, and that route clean but for one wrong
+odometry step (where a large step is common, the wrong one is no rare jump).
 They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
@@ -241,6 +242,8 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
                slam("slam/sphere2500/rand10", "sphere2500", random_false=0.10), 5),
         broken("stress/odometry-breaks/torus3D/clean",
                slam("slam/torus3D/noise1", "torus3D"), 5),
+        broken("stress/odometry-breaks/car/revisit/2x400-clean",
+               revisit("revisit/car/2x400", 400, 2, runs=8, trajectory="car"), 1),
         identity("stress/identity/chain/1000/rand30",
                  chain("chain/1000/rand30", 1000, closures=36, false_random=0.30)),
         identity("stress/identity/parking-garage/rand10",
