@@ -112,6 +112,7 @@ from rotavg_ros.core.robust.noise import (
 from rotavg_ros.core.robust.odometry_breaks import (
     OdometrySuspects,
     cuts_onto_jumps,
+    left_out_jumps,
     rare_jumps,
     suspect_odometry,
 )
@@ -639,29 +640,28 @@ def robust_resolve(
                   | (residual_angles(tight_fit.rotations, i, j, R) * np.sqrt(w)
                      > GNC_SIGMAS * tight_fit.noise.sigma))
         suspects = suspect_odometry(num_nodes, i, j, R, odometry, tight_fit.inlier, misfit)
-        if suspects.edges.any() and not odometry.all():  # (no closure: nothing to judge by)
-            trusted = odometry & ~suspects.edges
-            # The pieces join where the most closures agree: a suspect step counts as one
-            # closure there, not at the odometry's weight, which would outvote them all.
-            w_join = np.where(suspects.edges, float(np.median(w[~odometry])), w)
-            joined = odometry_start(num_nodes, i, j, R, w_join, trusted, initial_threshold)
-            # Step 3's fit trusted the suspects, and where they are wrong it is bent and
-            # its scale inflated: at 4 such scales the GNC from the joined pieces takes a
-            # wrong step back in. The truncated least squares from those pieces fits
-            # their edges at the data's scale, and the pass runs again at it.
-            untrusting = tight(trusted, {"odometry": joined}, suspects=suspects)
-            # A cut the closures cannot tell from a jump's: on the jump.
-            moved_rot, moved_inlier = cuts_onto_jumps(untrusting.rotations, i, j, R,
-                                                      odometry, untrusting.inlier, suspects)
-            if not np.array_equal(moved_inlier, untrusting.inlier):
-                moved_noise, _, moved_t = _fit_and_classify(moved_rot, i, j, R, w,
-                                                             moved_inlier, max_threshold, tree)
-                untrusting = TightFit(moved_rot, moved_inlier, moved_noise, moved_t,
-                                      untrusting.runs_left_out)
-            if _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, suspects,
+        untrusted = functools.partial(_untrusting_pass, tight, num_nodes, i, j, R, w,
+                                      odometry, max_threshold, initial_threshold, tree)
+        tries: list[OdometrySuspects] = []
+        if not odometry.all():  # (no closure: nothing to judge by)
+            # Jumps a first-pass fit left out (it judged the odometry as any other edge)
+            # are suspects too, tried first: that pass stands where it cuts one of them and
+            # explains the data clearly better; else the pass without them is tried.
+            judged = suspects.with_left_out(left_out_jumps(
+                R, odometry, (first_inlier for _, first_inlier in solutions.values())))
+            if judged.left_out is not None and judged.left_out.any():
+                tries.append(judged)
+            if suspects.edges.any():
+                tries.append(suspects)
+        for tried in tries:
+            untrusting, trusted = untrusted(tried)
+            if tried.left_out is not None and not (tried.left_out & ~untrusting.inlier).any():
+                continue  # no left-out jump cut: no break of theirs found
+            if _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, tried,
                                     initial_threshold):
-                tight_fit, known, distrusted = untrusting, trusted, suspects.edges
-                jumps = suspects.jumps
+                tight_fit, known, distrusted = untrusting, trusted, tried.edges
+                jumps = tried.jumps
+                break
         rot, inlier, noise, t = (tight_fit.rotations, tight_fit.inlier, tight_fit.noise,
                                  tight_fit.t)
         runs_left_out = tight_fit.runs_left_out
@@ -928,6 +928,35 @@ def _local_fit(start: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: Fl
     return rot, keep
 
 
+def _untrusting_pass(
+    tight: Callable[..., TightFit], num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
+    w: FloatArray, odometry: BoolArray, max_threshold: float, initial_threshold: float,
+    tree: BoolArray, suspects: OdometrySuspects,
+) -> tuple[TightFit, BoolArray]:
+    """``(fit, trusted)``: the tight pass (``tight``, :func:`_tight_pass` bound to the
+    graph) with the ``suspects`` as ordinary edges, from the odometry's pieces joined where
+    the most closures agree, and the odometry it still trusts."""
+    trusted = odometry & ~suspects.edges
+    # The pieces join where the most closures agree: a suspect step counts as one
+    # closure there, not at the odometry's weight, which would outvote them all.
+    w_join = np.where(suspects.edges, float(np.median(w[~odometry])), w)
+    joined = odometry_start(num_nodes, i, j, R, w_join, trusted, initial_threshold)
+    # Step 3's fit trusted the suspects, and where they are wrong it is bent and its
+    # scale inflated: at 4 such scales the GNC from the joined pieces takes a wrong step
+    # back in. The truncated least squares from those pieces fits their edges at the
+    # data's scale, and the pass runs again at it.
+    untrusting: TightFit = tight(trusted, {"odometry": joined}, suspects=suspects)
+    # A cut the closures cannot tell from a jump's: on the jump.
+    moved_rot, moved_inlier = cuts_onto_jumps(untrusting.rotations, i, j, R, odometry,
+                                              untrusting.inlier, suspects)
+    if not np.array_equal(moved_inlier, untrusting.inlier):
+        moved_noise, _, moved_t = _fit_and_classify(moved_rot, i, j, R, w, moved_inlier,
+                                                     max_threshold, tree)
+        untrusting = TightFit(moved_rot, moved_inlier, moved_noise, moved_t,
+                              untrusting.runs_left_out)
+    return untrusting, trusted
+
+
 def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
                          j: IntArray, R: FloatArray, w: FloatArray, trusted: BoolArray,
                          suspects: OdometrySuspects, initial_threshold: float) -> bool:
@@ -943,16 +972,19 @@ def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
     one run of them (:func:`~.closure_runs.independent_pieces`): the closures of one run,
     between the same two stretches, are one wrong match repeated keyframe after keyframe
     (perceptual aliasing), one piece of evidence against the odometry. A jump the closures
-    point at, or a rare one, needs only its own cap. Noise scales that are not finite: no
-    cut."""
+    point at, or a rare one, needs only its own cap; one a first-pass fit left out
+    (``suspects.left_out``) pays the penalty, but one run of freed closures is enough.
+    Noise scales that are not finite: no cut."""
     if not (math.isfinite(trusting.noise.sigma) and math.isfinite(untrusting.noise.sigma)):
         return False
     c = min(GNC_SIGMAS * _judged_scale(*((f.noise, f.t, f.inlier)
                                            for f in (trusting, untrusting))),
             initial_threshold)
-    cut = int(np.count_nonzero(suspects.edges & ~untrusting.inlier & ~suspects.jumps))
+    cut_edges = suspects.edges & ~untrusting.inlier & ~suspects.jumps
+    cut = int(np.count_nonzero(cut_edges))
     freed = untrusting.inlier & ~trusting.inlier & ~(trusted | suspects.edges)
-    if cut and independent_pieces(i, j, freed) <= 1:
+    misfits_cut = cut_edges if suspects.left_out is None else cut_edges & ~suspects.left_out
+    if misfits_cut.any() and independent_pieces(i, j, freed) <= 1:
         return False
     return bool(truncated_squares(untrusting.rotations, i, j, R, w, c, trusted)
                 + BREAK_PENALTY * cut * c * c
