@@ -29,10 +29,11 @@ steps, seed 0: 50.9 deg mean error). The suspects:
   pass too: the fit that trusts the step leaves out one run of them and bends the rest, and
   no step is pointed at (a car's route, one wrong step of 101 deg among 76 true turns:
   21.4 deg mean error against the oracle's 3.4, where the first pass from the spanning tree
-  had left out exactly that step). Cutting one must pay for itself as a misfit's cut does,
-  but the one run of closures it frees is evidence enough. They are tried first; a pass
-  that cuts none of them, or that the break test refuses, gives way to the pass without
-  them (:func:`~.verify.robust_resolve`).
+  had left out exactly that step); a step left out that is no jump counts on the jump
+  beside it that no kept closure tells it from. Cutting one must pay for itself as a
+  misfit's cut does, but the one run of closures it frees is evidence enough. They are
+  tried first; a pass that cuts none of them, or that the break test refuses, gives way
+  to the pass without them (:func:`~.verify.robust_resolve`).
 - **Steps a fit leaves far off** (``misfit``, the caller's tests). Step 3 of the
   verification judges the odometry as any other edge; a step it leaves outside by more
   than the initial threshold is suspect (a graph whose steps are no smaller than its
@@ -52,7 +53,7 @@ Conventions: odometry edges join consecutive node indices; ``R_ij ~= R_i R_j^T``
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -143,19 +144,27 @@ def suspect_odometry(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray,
     return OdometrySuspects((odometry & misfit) | jumps, jumps)
 
 
-def left_out_jumps(R: FloatArray, odometry: BoolArray,
+def left_out_jumps(i: IntArray, j: IntArray, R: FloatArray, odometry: BoolArray,
                    fits: Iterable[BoolArray]) -> BoolArray:
     """The jumps (:func:`odometry_jumps`) that a fit left out, of the ``fits`` (the inliers
     of fits that judged the odometry as any other edge) that left out few steps: at most
     ``RARE_JUMPS`` of them, or ``RARE_JUMPS_AT_LEAST``, as a lost track breaks few. A fit
     that leaves out more is lost itself (a route driven twice, two wrong steps, 20% false
     closures: a first pass 100 deg off left out 18 steps, three of them true turns, and
-    cutting two of those doubled the mean error)."""
+    cutting two of those doubled the mean error). A step left out that is no jump counts on
+    the kept jump beside it that no kept closure tells it from (:func:`cuts_onto_jumps`):
+    the fit could as well have cut there (a wrong step of 157 deg, the cut eight keyframes
+    on, at a 3 deg step)."""
+    jump = odometry_jumps(R, odometry)
     out = np.zeros(R.shape[0], bool)
     for inlier in fits:
-        if _rare(odometry & ~inlier, odometry):
-            out |= odometry & ~inlier
-    return odometry_jumps(R, odometry) & out
+        if not _rare(odometry & ~inlier, odometry):
+            continue
+        kept = inlier.copy()
+        for _ in _moves_onto_jumps(i, j, odometry, kept, odometry & ~inlier & ~jump, jump):
+            pass
+        out |= odometry & ~kept
+    return jump & out
 
 
 def rare_jumps(R: FloatArray, odometry: BoolArray) -> BoolArray:
@@ -198,37 +207,54 @@ def cuts_onto_jumps(rotations: FloatArray, i: IntArray, j: IntArray, R: FloatArr
     closure that ends between costs at most its cap either way. Returns new arrays; the
     input is not changed."""
     rot, kept = rotations.copy(), inlier.copy()
-    num_nodes = rot.shape[0]
-    # Nodes a kept closure ends on (a rejected one costs its cap wherever they lie: no say).
-    kept_closure = ~odometry & inlier
-    closure_end = np.zeros(num_nodes, bool)
-    closure_end[i[kept_closure]] = True
-    closure_end[j[kept_closure]] = True
-    step_from = np.full(num_nodes, -1)  # step_from[k]: the odometry edge k -- k+1
-    odometry_edges = np.flatnonzero(odometry)
-    step_from[np.minimum(i, j)[odometry_edges]] = odometry_edges
-    for cut in np.flatnonzero(suspects.edges & ~suspects.jumps & ~inlier):
-        m = int(min(i[cut], j[cut]))
-        for direction in (1, -1):  # the jump after the cut, then before it
-            jump = _kept_jump_beside(m, direction, step_from, closure_end, kept, suspects)
-            if jump is None:
-                continue
-            kept[cut], kept[jump] = True, False
-            # The nodes between follow the odometry from the cut's side, now joined.
-            k = int(min(i[jump], j[jump]))
-            path = range(m + 1, k + 1) if direction > 0 else range(m, k, -1)
-            for node in path:
-                edge = step_from[node - 1] if direction > 0 else step_from[node]
-                other = node - direction
-                rot[node] = (R[edge].T @ rot[other] if i[edge] == other
-                             else R[edge] @ rot[other])
-            break
+    step_from = _steps_from(rot.shape[0], i, j, odometry)
+    cuts = suspects.edges & ~suspects.jumps & ~inlier
+    for cut, jump, direction in _moves_onto_jumps(i, j, odometry, kept, cuts,
+                                                  suspects.jumps):
+        # The nodes between follow the odometry from the cut's side, now joined.
+        m, k = int(min(i[cut], j[cut])), int(min(i[jump], j[jump]))
+        path = range(m + 1, k + 1) if direction > 0 else range(m, k, -1)
+        for node in path:
+            edge = step_from[node - 1] if direction > 0 else step_from[node]
+            other = node - direction
+            rot[node] = (R[edge].T @ rot[other] if i[edge] == other
+                         else R[edge] @ rot[other])
     return rot, kept
 
 
+def _steps_from(num_nodes: int, i: IntArray, j: IntArray, odometry: BoolArray) -> IntArray:
+    """``step_from[k]``: the odometry edge ``k -- k + 1`` (-1: none)."""
+    step_from = np.full(num_nodes, -1)
+    odometry_edges = np.flatnonzero(odometry)
+    step_from[np.minimum(i, j)[odometry_edges]] = odometry_edges
+    return step_from
+
+
+def _moves_onto_jumps(i: IntArray, j: IntArray, odometry: BoolArray, kept: BoolArray,
+                      cuts: BoolArray, jumps: BoolArray) -> Iterator[tuple[int, int, int]]:
+    """``(cut, jump, direction)`` for each of the ``cuts`` (odometry edges ``kept`` leaves
+    out) that moves onto a kept ``jumps`` edge beside it (:func:`cuts_onto_jumps`), the
+    later jump first; ``kept`` is updated in place as each cut moves."""
+    num_nodes = int(max(i.max(initial=-1), j.max(initial=-1))) + 1
+    # Nodes a kept closure ends on (a rejected one costs its cap wherever they lie: no say).
+    kept_closure = ~odometry & kept
+    closure_end = np.zeros(num_nodes, bool)
+    closure_end[i[kept_closure]] = True
+    closure_end[j[kept_closure]] = True
+    step_from = _steps_from(num_nodes, i, j, odometry)
+    for cut in np.flatnonzero(cuts):
+        m = int(min(i[cut], j[cut]))
+        for direction in (1, -1):  # the jump after the cut, then before it
+            jump = _kept_jump_beside(m, direction, step_from, closure_end, kept, jumps)
+            if jump is not None:
+                kept[cut], kept[jump] = True, False
+                yield int(cut), jump, direction
+                break
+
+
 def _kept_jump_beside(m: int, direction: int, step_from: IntArray, closure_end: BoolArray,
-                      kept: BoolArray, suspects: OdometrySuspects) -> int | None:
-    """The jump suspect kept in ``kept`` that the walk from the step ``m -- m + 1`` in
+                      kept: BoolArray, jumps: BoolArray) -> int | None:
+    """The ``jumps`` edge kept in ``kept`` that the walk from the step ``m -- m + 1`` in
     ``direction`` (+1: later steps) meets over kept odometry steps and nodes no closure ends
     on, or None."""
     num_nodes = step_from.shape[0]
@@ -240,7 +266,7 @@ def _kept_jump_beside(m: int, direction: int, step_from: IntArray, closure_end: 
             step = int(step_from[node - 1]) if node > 0 else -1  # node - 1 -- node
         if step < 0 or not kept[step]:
             return None
-        if suspects.jumps[step]:
+        if jumps[step]:
             return step
         node += direction
     return None

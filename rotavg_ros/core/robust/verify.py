@@ -648,7 +648,7 @@ def robust_resolve(
             # are suspects too, tried first: that pass stands where it cuts one of them and
             # explains the data clearly better; else the pass without them is tried.
             judged = suspects.with_left_out(left_out_jumps(
-                R, odometry, (first_inlier for _, first_inlier in solutions.values())))
+                i, j, R, odometry, (first_inlier for _, first_inlier in solutions.values())))
             if judged.left_out is not None and judged.left_out.any():
                 tries.append(judged)
             if suspects.edges.any():
