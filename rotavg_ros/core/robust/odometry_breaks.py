@@ -160,7 +160,7 @@ def left_out_jumps(i: IntArray, j: IntArray, R: FloatArray, odometry: BoolArray,
     for inlier in fits:
         if not _rare(odometry & ~inlier, odometry):
             continue
-        kept = inlier.copy()
+        kept = inlier.copy()  # each move below cuts the jump instead, in ``kept``
         for _ in _moves_onto_jumps(i, j, odometry, kept, odometry & ~inlier & ~jump, jump):
             pass
         out |= odometry & ~kept
