@@ -156,12 +156,15 @@ def left_out_jumps(i: IntArray, j: IntArray, R: FloatArray, odometry: BoolArray,
     the fit could as well have cut there (a wrong step of 157 deg, the cut eight keyframes
     on, at a 3 deg step)."""
     jump = odometry_jumps(R, odometry)
+    step_from = _steps_from(int(max(i.max(initial=-1), j.max(initial=-1))) + 1, i, j,
+                            odometry)
     out = np.zeros(R.shape[0], bool)
     for inlier in fits:
         if not _rare(odometry & ~inlier, odometry):
             continue
         kept = inlier.copy()  # each move below cuts the jump instead, in ``kept``
-        for _ in _moves_onto_jumps(i, j, odometry, kept, odometry & ~inlier & ~jump, jump):
+        for _ in _moves_onto_jumps(i, j, odometry, kept, odometry & ~inlier & ~jump, jump,
+                                   step_from):
             pass
         out |= odometry & ~kept
     return jump & out
@@ -210,7 +213,7 @@ def cuts_onto_jumps(rotations: FloatArray, i: IntArray, j: IntArray, R: FloatArr
     step_from = _steps_from(rot.shape[0], i, j, odometry)
     cuts = suspects.edges & ~suspects.jumps & ~inlier
     for cut, jump, direction in _moves_onto_jumps(i, j, odometry, kept, cuts,
-                                                  suspects.jumps):
+                                                  suspects.jumps, step_from):
         # The nodes between follow the odometry from the cut's side, now joined.
         m, k = int(min(i[cut], j[cut])), int(min(i[jump], j[jump]))
         path = range(m + 1, k + 1) if direction > 0 else range(m, k, -1)
@@ -231,17 +234,17 @@ def _steps_from(num_nodes: int, i: IntArray, j: IntArray, odometry: BoolArray) -
 
 
 def _moves_onto_jumps(i: IntArray, j: IntArray, odometry: BoolArray, kept: BoolArray,
-                      cuts: BoolArray, jumps: BoolArray) -> Iterator[tuple[int, int, int]]:
+                      cuts: BoolArray, jumps: BoolArray, step_from: IntArray,
+                      ) -> Iterator[tuple[int, int, int]]:
     """``(cut, jump, direction)`` for each of the ``cuts`` (odometry edges ``kept`` leaves
     out) that moves onto a kept ``jumps`` edge beside it (:func:`cuts_onto_jumps`), the
-    later jump first; ``kept`` is updated in place as each cut moves."""
-    num_nodes = int(max(i.max(initial=-1), j.max(initial=-1))) + 1
+    later jump first; ``kept`` is updated in place as each cut moves. ``step_from``:
+    :func:`_steps_from` over every node."""
     # Nodes a kept closure ends on (a rejected one costs its cap wherever they lie: no say).
     kept_closure = ~odometry & kept
-    closure_end = np.zeros(num_nodes, bool)
+    closure_end = np.zeros(step_from.shape[0], bool)
     closure_end[i[kept_closure]] = True
     closure_end[j[kept_closure]] = True
-    step_from = _steps_from(num_nodes, i, j, odometry)
     for cut in np.flatnonzero(cuts):
         m = int(min(i[cut], j[cut]))
         for direction in (1, -1):  # the jump after the cut, then before it
