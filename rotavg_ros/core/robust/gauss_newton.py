@@ -432,6 +432,25 @@ def prediction_variance(
     return q
 
 
+def effective_resistances(n: int, i: IntArray, j: IntArray, w: FloatArray,
+                          edges: IntArray) -> FloatArray:
+    """Exact ``q_e`` (as in :func:`prediction_variance`: the effective resistance between
+    the edge's ends in the graph weighted ``w``) for the ``edges`` (indices into ``i``,
+    ``j``) only: one factorization, then the dense inverse where ``L`` is small, else one
+    solve per edge. Without probes: the cost of a few edges stays a few solves."""
+    q = np.zeros(edges.size)
+    active = w > 0
+    factor = laplacian_factor(n, i[active], j[active], w[active]) if n >= 2 else None
+    if factor is None or edges.size == 0:
+        return q
+    index = np.full(n, -1)
+    index[factor.nodes] = np.arange(factor.nodes.size)
+    inverse = factor.dense_inverse()
+    if inverse is not None:
+        return _resistance_from_inverse(inverse, index, i[edges], j[edges])
+    return _effective_resistance(factor, index, i[edges], j[edges])
+
+
 def _resistance_from_inverse(inverse: FloatArray, index: IntArray, i: IntArray,
                              j: IntArray) -> FloatArray:
     """``(u_i - u_j)^T L^-1 (u_i - u_j)`` per edge from ``L^-1``; ``index`` as in

@@ -84,6 +84,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from rotavg_ros.core.chordal_init import chordal_rotations
 from rotavg_ros.core.filter.edge_filter import tree_rotations
+from rotavg_ros.core.robust.bent_routes import cut_bent_jump
 from rotavg_ros.core.robust.closure_consistency import (
     closure_loops,
     consistent_closures,
@@ -113,6 +114,7 @@ from rotavg_ros.core.robust.odometry_breaks import (
     OdometrySuspects,
     cuts_onto_jumps,
     left_out_jumps,
+    odometry_jumps,
     rare_jumps,
     suspect_odometry,
 )
@@ -146,6 +148,10 @@ the fit without trusting them has truncated squares lower, by this many caps for
 suspect it leaves out that is only a misfit, no jump pointed at or rare (besides that
 edge's own cap), than the fit that trusted them: cutting such a step must free several
 closures (see :func:`_breaks_explain_more`)."""
+
+BENT_CUTS = 2
+"""Jumps cut, one after the other, where a route bent around them
+(:func:`~.bent_routes.cut_bent_jump`): a lost track rarely breaks more than twice."""
 
 MIN_NOISE_RESIDUALS = 5
 """Fewest informative standardized residuals (:func:`standardized_residuals`) a noise
@@ -666,6 +672,28 @@ def robust_resolve(
                                  tight_fit.t)
         runs_left_out = tight_fit.runs_left_out
         cap = _cap(noise, initial_threshold)
+    # A route bent around a wrong step where jumps are common (a car's turns): the break
+    # test had nothing to point at; the trusted jump whose cut unbends the fit is cut.
+    if has_odometry and math.isfinite(noise.sigma):
+        common = odometry_jumps(R, odometry) & ~rare_jumps(R, odometry)
+        for _ in range(BENT_CUTS):
+            c = min(GNC_SIGMAS * noise.sigma, initial_threshold)
+            bent = cut_bent_jump(rot, i, j, R, w, inlier | known, known, common & ~jumps, c,
+                                 BREAK_PENALTY, functools.partial(
+                                     truncated_squares, i=i, j=j, R=R, w=w, c=c))
+            if bent is None:
+                break
+            known = known.copy()
+            known[bent.edge] = False
+            cut = np.zeros(i.size, bool)
+            cut[bent.edge] = True
+            distrusted = cut if distrusted is None else distrusted | cut
+            jumps = jumps | cut
+            rot, inlier, noise, t = _settle(bent.rotations, i, j, R, w, bent.inlier, known,
+                                            tree, rounds, max_threshold, initial_threshold)
+            cap = _cap(noise, initial_threshold)
+            if not math.isfinite(noise.sigma):
+                break
     relocalized = 0
     # Nodes the re-solve left far off (all their true edges dropped) move to where their
     # own edges agree, if that lowers the choice cost; the inliers then settle again.
