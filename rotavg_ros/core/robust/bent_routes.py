@@ -12,7 +12,10 @@ how much the least-squares sum would fall without it, to first order
 cannot tell them apart), so the jumps of the few best distinct scores above the penalty are
 refitted without their step, the edges within the cap re-admitted, and the refit whose
 truncated squares fall by more than the penalty, the most, stands (:func:`cut_bent_jump`).
-A true turn's cut frees nothing and bends the route elsewhere.
+A true turn's cut frees nothing and bends the route elsewhere. The verification runs it on
+odometry chains with sparse loop closures only (:func:`~.verify.robust_resolve`): on a pose
+graph dense with loops a biased odometry strains every step, and a cut that relieves the
+strain can turn a block.
 
 Conventions: odometry edges join consecutive node indices; ``R_ij ~= R_i R_j^T``.
 """
