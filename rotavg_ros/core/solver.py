@@ -320,8 +320,8 @@ class RotationAverager:
                        raw: ComponentSolution, raw_R: FloatArray, i: IntArray, j: IntArray,
                        w: FloatArray) -> bool:
         """Whether the solve with the odometry's bias removed (``unbiased``, of the
-        measurements ``unbiased_R``) explains its data better than the solve without
-        (``raw``, of ``raw_R``) explains the raw data: truncated squares at ``GNC_SIGMAS``
+        measurements ``unbiased_R``) explains its data at least as well as the solve
+        without (``raw``, of ``raw_R``) explains the raw data: truncated squares at ``GNC_SIGMAS``
         times the lower of the two noise scales (at most the initial threshold), every
         edge capped. A wrong odometry step can pass for a bias where the closures' loops
         are all about as long (a route driven twice: a 0.45 deg a step bias estimated on an
