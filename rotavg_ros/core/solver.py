@@ -278,24 +278,20 @@ class RotationAverager:
                 and redundancy(n, np.ones(i.size, bool))
                 < opt.verify.least_squares_below_redundancy):
             bias = estimate_odometry_bias(n, i, j, R, w, odometry)
+        sol = self._solve_once(n, i, j, R, w, odometry, initial, initial_depth)
         removed = 0.0
-        sol = None
         if bias is not None and bias.applied:
             unbiased = remove_odometry_bias(i, j, R, odometry, bias.beta)
-            sol = self._solve_once(n, i, j, unbiased, w, odometry, initial, initial_depth)
-            raw = self._solve_once(n, i, j, R, w, odometry, initial, initial_depth)
-            if self._explains_more(sol, unbiased, raw, R, i, j, w):
+            with_bias = self._solve_once(n, i, j, unbiased, w, odometry, initial, initial_depth)
+            if self._explains_more(with_bias, unbiased, sol, R, i, j, w):
                 self._say(f"odometry bias {bias.degrees_per_step:.3f} deg a step removed "
                           f"(the loops read {math.degrees(bias.scale_before):.2f} deg per "
                           f"axis with it, {math.degrees(bias.scale_after):.2f} without)")
-                R, removed = unbiased, bias.degrees_per_step
+                sol, R, removed = with_bias, unbiased, bias.degrees_per_step
             else:
                 self._say(f"odometry bias {bias.degrees_per_step:.3f} deg a step estimated "
                           "but not removed: the solve without it explains the data better "
                           "(a wrong odometry step, not a bias)")
-                sol = raw
-        if sol is None:
-            sol = self._solve_once(n, i, j, R, w, odometry, initial, initial_depth)
         sol = replace(sol, odometry_bias_deg=removed)
         if not (opt.verify.enabled and opt.verify.class_noise and sol.verification
                 and sol.verification != "failed" and i.size):

@@ -109,10 +109,11 @@ def cut_bent_jump(
     drops = leave_one_out_drops(rot, i, j, R, w, fit, candidates)
     best: JumpCut | None = None
     sizes = rotation_angle(R[candidates])
+    fitted = w * fit
     for e in _distinct_best(candidates, drops, sizes, penalty * c * c, CANDIDATE_SCORES):
         still = trusted.copy()
         still[e] = False
-        weights = w * fit
+        weights = fitted.copy()
         weights[e] = 0.0
         unbent = refine_least_squares(rot, i, j, R, weights, iterations=UNBEND_ITERATIONS)
         refit = (residual_angles(unbent, i, j, R) * np.sqrt(w) <= c) | still

@@ -179,6 +179,13 @@ def rare_jumps(R: FloatArray, odometry: BoolArray) -> BoolArray:
     return jump & _rare(jump, odometry)
 
 
+def common_jumps(R: FloatArray, odometry: BoolArray) -> BoolArray:
+    """The jumps (:func:`odometry_jumps`) where they are common, else none: the
+    complement of :func:`rare_jumps` among the jumps (a car's turns)."""
+    jump = odometry_jumps(R, odometry)
+    return jump & (not _rare(jump, odometry))
+
+
 def _rare(steps: BoolArray, odometry: BoolArray) -> bool:
     """Whether the ``steps`` are rare among the ``odometry`` ones (:data:`RARE_JUMPS`,
     :data:`RARE_JUMPS_AT_LEAST`)."""

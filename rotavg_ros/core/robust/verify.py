@@ -115,9 +115,9 @@ from rotavg_ros.core.robust.noise import (
 )
 from rotavg_ros.core.robust.odometry_breaks import (
     OdometrySuspects,
+    common_jumps,
     cuts_onto_jumps,
     left_out_jumps,
-    odometry_jumps,
     rare_jumps,
     suspect_odometry,
 )
@@ -681,7 +681,7 @@ def robust_resolve(
     # biased odometry strains every step, and a cut that relieves the strain turned a block
     # of parking-garage (0.5-1 deg a step: means 2.1-2.9 deg -> 5.0-8.3 deg).
     if chain_like and math.isfinite(noise.sigma):
-        common = odometry_jumps(R, odometry) & ~rare_jumps(R, odometry)
+        common = common_jumps(R, odometry)
         for _ in range(BENT_CUTS):
             c = min(GNC_SIGMAS * noise.sigma, initial_threshold)
             bent = cut_bent_jump(rot, i, j, R, w, inlier | known, known, common & ~jumps, c,
