@@ -41,7 +41,9 @@ for regimes the suite misses; a finding that holds across draws becomes a suite 
 (:func:`benchmarks.regimes.run_method`: a forked child per run, a time limit). One line per
 case: ``OK`` or ``MISS`` (our median within 10% or 0.05 deg of the best peer's),
 ``MEAN>1.5x`` where our mean is above 1.5x the best peer's, then mean / median and time of
-each method.
+each method. Last, the summary (:func:`stress_summary`): the counts of those targets and of
+our medians within 1.5x of the oracle's, and every variant that misses one.
+``--summary F`` prints it for a run saved with ``--json F``, without running anything.
 
     python -m benchmarks.regime_stress [--seed 0] [--noise-model folded] [--json out.json]
 
@@ -80,9 +82,12 @@ from benchmarks.regime_cases import (
     weighted_case,
 )
 from benchmarks.regimes import (
+    ORACLE,
+    OURS,
     OURS_NOFILTER,
     OURS_PAPER,
     Result,
+    best_peer,
     methods_for,
     peer_targets,
     run_method,
@@ -265,6 +270,56 @@ def verdict(ours: Result, rows: list[Result]) -> str:
     return ("OK" if targets[0] else "MISS") + (" MEAN>1.5x" if targets[1] else "")
 
 
+def stress_summary(results: list[Result]) -> list[str]:
+    """The summary of a stress run: one line with the counts of issue 14's two per-case
+    targets against the best peer (:func:`~benchmarks.regimes.peer_targets`) and of our
+    medians within 1.5x of the oracle's, then one line per variant that misses any of them.
+    Variants where ours failed or no peer ran are counted in neither."""
+    by_case: dict[str, list[Result]] = {}
+    for r in results:
+        by_case.setdefault(r.case, []).append(r)
+    within = worse_mean = compared = near_oracle = with_oracle = 0
+    misses: list[str] = []
+    for name, rows in by_case.items():
+        ours = next((r for r in rows if r.method == OURS and r.status == "ok"), None)
+        if ours is None:
+            continue
+        oracle = next((r for r in rows if r.method == ORACLE and r.status == "ok"), None)
+        if oracle is not None:
+            with_oracle += 1
+            if ours.median_deg <= 1.5 * oracle.median_deg:
+                near_oracle += 1
+            else:
+                misses.append(f"  beyond 1.5x the oracle: {name}: {ours.median_deg:.3f} "
+                              f"against {oracle.median_deg:.3f} median")
+        targets = peer_targets(ours, rows)
+        if targets is None:
+            continue
+        compared += 1
+        within += targets[0]
+        worse_mean += targets[1]
+        if not targets[0] or targets[1]:
+            misses.append(f"  {verdict(ours, rows)}: {name}: ours "
+                          f"{ours.mean_deg:.3f} / {ours.median_deg:.3f}, best peer mean "
+                          f"{best_of(rows, 'mean_deg'):.3f}, median "
+                          f"{best_of(rows, 'median_deg'):.3f}")
+    return [f"Summary (ours): median within 10% (or 0.05 deg) of the best peer's on "
+            f"{within} / {compared} variants; mean above 1.5x the best peer's on "
+            f"{worse_mean} / {compared}; median within 1.5x of the oracle's on "
+            f"{near_oracle} / {with_oracle}", *misses]
+
+
+def best_of(rows: list[Result], key: str) -> float:
+    """The best peer's ``key`` among a variant's ``rows`` (NaN where no peer ran)."""
+    best = best_peer(rows, key)
+    return float("nan") if best is None else float(getattr(best, key))
+
+
+def read_results(path: str) -> list[Result]:
+    """The results :func:`write_results` saved."""
+    return [Result(**row) for row in json.loads(Path(path).read_text())]
+
+
 def result_cells(rows: list[Result]) -> str:
     """Each method's ``mean/median time`` (or its status), as one line's cells."""
     return " | ".join(f"{r.method} {r.mean_deg:.3f}/{r.median_deg:.3f} {r.wall_s:.2f}s"
@@ -285,7 +340,12 @@ def main() -> int:
     p.add_argument("--timeout", type=float, default=300.0, help="per case and method, s")
     p.add_argument("--json", help="write the raw results (no per-node errors) here")
     p.add_argument("--cases", help="comma-separated substrings of the variants' names")
+    p.add_argument("--summary", metavar="JSON",
+                   help="print the summary of a run saved with --json, and run nothing")
     args = p.parse_args()
+    if args.summary:
+        print("\n".join(stress_summary(read_results(args.summary))))
+        return 0
     wanted = args.cases.split(",") if args.cases else [""]
     shared = shared_dir_or_say("regime_stress")
     if shared is None:
@@ -301,6 +361,7 @@ def main() -> int:
                 if runnable and method not in (OURS_PAPER, OURS_NOFILTER)]
         results += rows
         print(f"{verdict(rows[0], rows):14s} {case.name:36s} {result_cells(rows)}", flush=True)
+    print("\n".join(stress_summary(results)))
     if args.json:
         write_results(args.json, results)
     return 0

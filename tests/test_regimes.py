@@ -282,6 +282,35 @@ def test_summary_compares_with_the_better_gnc_variant() -> None:
     assert "| a | 1.000 | gtsam_gnc_tls+odo: 0.900 | 1.00 | 8.00 | 0.12 |" in text
 
 
+def test_stress_summary_counts_each_target_and_names_each_miss(tmp_path: Path) -> None:
+    from benchmarks.regime_stress import read_results, stress_summary, write_results
+
+    def row(case: str, method: str, mean: float, med: float, status: str = "ok") -> Result:
+        return Result(case, "chain", 9, 9, method, status, mean, med, med, 0.1)
+
+    results = [
+        row("good", OURS, 1.0, 1.0), row("good", ORACLE, 1.0, 0.9),
+        row("good", "gtsam_chordal", 1.2, 1.1),
+        row("far", OURS, 9.0, 2.0), row("far", ORACLE, 1.0, 1.0),
+        row("far", "gtsam_gnc_tls", 3.0, 1.9),  # median within 10%, mean 3x
+        row("miss", OURS, 2.0, 2.0), row("miss", "gtsam_shonan_huber", 2.0, 1.5),
+        row("no peer", OURS, 1.0, 1.0), row("no peer", ORACLE, 1.0, 1.0),
+        row("failed", OURS, float("nan"), float("nan"), "error"),
+        row("failed", "gtsam_chordal", 1.0, 1.0),
+    ]
+    path = tmp_path / "run.json"
+    write_results(str(path), results)
+    lines = stress_summary(read_results(str(path)))
+    assert lines[0] == ("Summary (ours): median within 10% (or 0.05 deg) of the best peer's "
+                        "on 2 / 3 variants; mean above 1.5x the best peer's on 1 / 3; median "
+                        "within 1.5x of the oracle's on 2 / 3")
+    assert sorted(lines[1:]) == sorted([
+        "  beyond 1.5x the oracle: far: 2.000 against 1.000 median",
+        "  OK MEAN>1.5x: far: ours 9.000 / 2.000, best peer mean 3.000, median 1.900",
+        "  MISS: miss: ours 2.000 / 2.000, best peer mean 2.000, median 1.500",
+    ])
+
+
 def test_gnc_peer_with_known_inliers_runs() -> None:
     from benchmarks import peers
     from benchmarks.regimes import GNC_ODO, methods_for
