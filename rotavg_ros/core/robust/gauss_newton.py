@@ -396,16 +396,13 @@ def prediction_variance(
     """
     n = rot.shape[0]
     q = np.zeros(i.size)
+    factored = _factored_laplacian(n, i, j, w)
+    if factored is None:
+        return q
+    laplacian, index = factored
+    nodes = laplacian.nodes
     active = w > 0
-    if n < 2 or not active.any():
-        return q
     ai, aj, aw = i[active], j[active], w[active]
-    factor = laplacian_factor(n, ai, aj, aw)
-    if factor is None:
-        return q
-    laplacian, nodes = factor, factor.nodes
-    index = np.full(n, -1)
-    index[nodes] = np.arange(nodes.size)
     inverse = laplacian.dense_inverse()
     if inverse is not None:
         q = _resistance_from_inverse(inverse, index, i, j)
@@ -439,16 +436,30 @@ def effective_resistances(n: int, i: IntArray, j: IntArray, w: FloatArray,
     ``j``) only: one factorization, then the dense inverse where ``L`` is small, else one
     solve per edge. Without probes: the cost of a few edges stays a few solves."""
     q = np.zeros(edges.size)
-    active = w > 0
-    factor = laplacian_factor(n, i[active], j[active], w[active]) if n >= 2 else None
-    if factor is None or edges.size == 0:
+    factored = _factored_laplacian(n, i, j, w) if edges.size else None
+    if factored is None:
         return q
-    index = np.full(n, -1)
-    index[factor.nodes] = np.arange(factor.nodes.size)
+    factor, index = factored
     inverse = factor.dense_inverse()
     if inverse is not None:
         return _resistance_from_inverse(inverse, index, i[edges], j[edges])
     return _effective_resistance(factor, index, i[edges], j[edges])
+
+
+def _factored_laplacian(n: int, i: IntArray, j: IntArray, w: FloatArray
+                        ) -> tuple[Factor, IntArray] | None:
+    """The factored Laplacian of the edges weighted ``w`` (``w_e = 0``: left out) and each
+    node's row in it (-1: the anchor or a node no edge reaches, whose potential is 0); None
+    where there is nothing to factor."""
+    active = w > 0
+    if n < 2 or not active.any():
+        return None
+    factor = laplacian_factor(n, i[active], j[active], w[active])
+    if factor is None:
+        return None
+    index = np.full(n, -1)
+    index[factor.nodes] = np.arange(factor.nodes.size)
+    return factor, index
 
 
 def _resistance_from_inverse(inverse: FloatArray, index: IntArray, i: IntArray,
