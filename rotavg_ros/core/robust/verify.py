@@ -157,6 +157,12 @@ BREAK_TEST_ROUNDS = 3
 cut it, while it finds more (parking-garage with three wrong steps: the first round cut
 two, the closures across the third, 129 of them, pointed at it only then)."""
 
+LATER_ROUND_MARGIN = 1.0
+"""Caps a later round of the break test must gain beyond the test's own terms: one edge
+explained more, not cuts moved between jumps that no closure tells apart at the same
+truncated squares (stress draw 97's parking-garage: two true turns cut for one, 1.49 deg
+mean -> 9.06)."""
+
 BENT_CUTS = 2
 """Jumps cut, one after the other, where a route bent around them
 (:func:`~.bent_routes.cut_bent_jump`): a lost track rarely breaks more than twice."""
@@ -678,10 +684,7 @@ def robust_resolve(
                 break
         # Several wrong steps: a fit bent by all of them points at some only, and the
         # closures across the others are rejected by the fit that cut the first ones and
-        # trusts the rest. The test runs again from the fit it chose; a later round must
-        # explain at least one edge more (a cap), not move cuts between jumps that no
-        # closure tells apart (stress draw 97's parking-garage: the same truncated squares,
-        # two true turns cut for one, 1.49 deg mean -> 9.06).
+        # trusts the rest. The test runs again from the fit it chose, by a margin.
         for _ in range(BREAK_TEST_ROUNDS - 1 if distrusted is not None else 0):
             again = _more_suspects(num_nodes, i, j, R, w, odometry, known, tight_fit,
                                    distrusted, jumps)
@@ -689,7 +692,7 @@ def robust_resolve(
                 break
             untrusting, trusted = untrusted(again)
             if not _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, again,
-                                        initial_threshold, margin=1.0):
+                                        initial_threshold, margin=LATER_ROUND_MARGIN):
                 break
             tight_fit, known, distrusted, jumps = untrusting, trusted, again.edges, again.jumps
         rot, inlier, noise, t = (tight_fit.rotations, tight_fit.inlier, tight_fit.noise,
@@ -1016,18 +1019,19 @@ def _more_suspects(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: F
                    odometry: BoolArray, known: BoolArray, fit: TightFit,
                    distrusted: BoolArray | None, jumps: BoolArray) -> OdometrySuspects | None:
     """The break test's next suspects after a break (:func:`robust_resolve`): the steps of
-    the odometry still trusted (``known``) that the fit ``fit``, which cut the ``distrusted``
-    ones, points at (:func:`~.odometry_breaks.suspect_odometry` over the whole odometry, its
-    misfits at ``GNC_SIGMAS`` noise scales), with the suspects already cut, which count as
-    jumps (no penalty again); None where it points at none."""
+    the odometry still trusted (``known``) that the fit ``fit`` points at
+    (:func:`~.odometry_breaks.suspect_odometry` over the whole odometry, its misfits at
+    ``GNC_SIGMAS`` noise scales), with the earlier rounds' suspects (``distrusted``, cut
+    or left as ordinary edges), which count as jumps: no penalty again. None where it
+    points at none."""
     misfit = (residual_angles(fit.rotations, i, j, R) * np.sqrt(w)
               > GNC_SIGMAS * fit.noise.sigma)
     found = suspect_odometry(num_nodes, i, j, R, odometry, fit.inlier, misfit)
     new = found.edges & known
     if not new.any():
         return None
-    cut = np.zeros(i.size, bool) if distrusted is None else distrusted
-    return OdometrySuspects(cut | new, jumps | (found.jumps & known) | cut)
+    earlier = np.zeros(i.size, bool) if distrusted is None else distrusted
+    return OdometrySuspects(earlier | new, jumps | (found.jumps & known) | earlier)
 
 
 def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
