@@ -88,7 +88,9 @@ from benchmarks.regimes import (
     OURS_PAPER,
     Result,
     best_peer,
+    by_case,
     methods_for,
+    ok_row,
     peer_targets,
     run_method,
 )
@@ -275,16 +277,13 @@ def stress_summary(results: list[Result]) -> list[str]:
     targets against the best peer (:func:`~benchmarks.regimes.peer_targets`) and of our
     medians within 1.5x of the oracle's, then one line per variant that misses any of them.
     Variants where ours failed or no peer ran are counted in neither."""
-    by_case: dict[str, list[Result]] = {}
-    for r in results:
-        by_case.setdefault(r.case, []).append(r)
     within = worse_mean = compared = near_oracle = with_oracle = 0
     misses: list[str] = []
-    for name, rows in by_case.items():
-        ours = next((r for r in rows if r.method == OURS and r.status == "ok"), None)
+    for name, rows in by_case(results).items():
+        ours = ok_row(rows, OURS)
         if ours is None:
             continue
-        oracle = next((r for r in rows if r.method == ORACLE and r.status == "ok"), None)
+        oracle = ok_row(rows, ORACLE)
         if oracle is not None:
             with_oracle += 1
             if ours.median_deg <= 1.5 * oracle.median_deg:

@@ -215,6 +215,19 @@ def best_peer(rows: list[Result], key: str) -> Result | None:
     return min(ok, key=lambda r: getattr(r, key)) if ok else None
 
 
+def by_case(results: list[Result]) -> dict[str, list[Result]]:
+    """The results grouped by case, in the order the cases ran."""
+    grouped: dict[str, list[Result]] = {}
+    for r in results:
+        grouped.setdefault(r.case, []).append(r)
+    return grouped
+
+
+def ok_row(rows: list[Result], method: str) -> Result | None:
+    """``method``'s row among a case's ``rows`` where it ran to the end, else None."""
+    return next((r for r in rows if r.method == method and r.status == "ok"), None)
+
+
 def peer_targets(ours: Result, rows: list[Result]) -> tuple[bool, bool] | None:
     """Issue 14's two per-case targets for ``ours`` among a case's ``rows``: (median within
     10% or 0.05 deg of the best peer's median, mean above 1.5x the best peer's mean); None
@@ -228,17 +241,15 @@ def peer_targets(ours: Result, rows: list[Result]) -> tuple[bool, bool] | None:
 
 def summarize(results: list[Result], method: str = OURS) -> str:
     """The issue's target counts and oracle ratios of ``method``, as markdown."""
-    by_case: dict[str, list[Result]] = {}
-    for r in results:
-        by_case.setdefault(r.case, []).append(r)
+    cases = by_case(results)
     within = worse_mean = compared = 0
     far: list[str] = []
     ratios: list[str] = []
     ratio_vals: list[float] = []
-    for name, rows in by_case.items():
-        ours = next((r for r in rows if r.method == method and r.status == "ok"), None)
+    for name, rows in cases.items():
+        ours = ok_row(rows, method)
         bm, bmean = best_peer(rows, "median_deg"), best_peer(rows, "mean_deg")
-        oracle = next((r for r in rows if r.method == ORACLE and r.status == "ok"), None)
+        oracle = ok_row(rows, ORACLE)
         if ours is not None and oracle is not None:
             ratio = ours.median_deg / max(oracle.median_deg, 1e-12)
             ratio_vals.append(ratio)
@@ -260,7 +271,7 @@ def summarize(results: list[Result], method: str = OURS) -> str:
            f"{len(ratio_vals)} generated cases: median "
            f"{np.median(ratio_vals) if ratio_vals else float('nan'):.2f}, "
            f"{sum(v <= 1.5 for v in ratio_vals)} within 1.5×."]
-    out += gnc_comparison(by_case, method)
+    out += gnc_comparison(cases, method)
     if far:
         out += ["", "Cases where our mean is more than 1.5× the best peer's mean:", "",
                 "| case | ours mean / median ° | best peer mean ° | best peer median ° |",
@@ -276,14 +287,14 @@ EQUAL_MEDIANS = 0.005
 set solved by two estimators)."""
 
 
-def gnc_comparison(by_case: dict[str, list[Result]], method: str = OURS) -> list[str]:
+def gnc_comparison(cases: dict[str, list[Result]], method: str = OURS) -> list[str]:
     """Issue 14's GNC target on the SLAM and chain cases with false closures: ``method``'s
     median against the better GNC-TLS variant's (the lower median), and its time against
     a quarter of that variant's; a summary line and a table (markdown lines)."""
     rows: list[str] = []
     lower = equal = quick = 0
-    for name, case_rows in by_case.items():
-        ours = next((r for r in case_rows if r.method == method and r.status == "ok"), None)
+    for name, case_rows in cases.items():
+        ours = ok_row(case_rows, method)
         gnc = [r for r in case_rows if r.method in ("gtsam_gnc_tls", GNC_ODO)
                and r.status == "ok"]
         if ours is None or not gnc or ours.family not in ("slam", "chain") \

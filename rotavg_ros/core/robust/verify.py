@@ -685,7 +685,9 @@ def robust_resolve(
         # Several wrong steps: a fit bent by all of them points at some only, and the
         # closures across the others are rejected by the fit that cut the first ones and
         # trusts the rest. The test runs again from the fit it chose, by a margin.
-        for _ in range(BREAK_TEST_ROUNDS - 1 if distrusted is not None else 0):
+        for _ in range(BREAK_TEST_ROUNDS - 1):
+            if distrusted is None:  # (no break)
+                break
             again = _more_suspects(num_nodes, i, j, R, w, odometry, known, tight_fit,
                                    distrusted, jumps)
             if again is None:
@@ -1017,7 +1019,7 @@ def _untrusting_pass(
 
 def _more_suspects(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
                    odometry: BoolArray, known: BoolArray, fit: TightFit,
-                   distrusted: BoolArray | None, jumps: BoolArray) -> OdometrySuspects | None:
+                   distrusted: BoolArray, jumps: BoolArray) -> OdometrySuspects | None:
     """The break test's next suspects after a break (:func:`robust_resolve`): the steps of
     the odometry still trusted (``known``) that the fit ``fit`` points at
     (:func:`~.odometry_breaks.suspect_odometry` over the whole odometry, its misfits at
@@ -1030,8 +1032,7 @@ def _more_suspects(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, w: F
     new = found.edges & known
     if not new.any():
         return None
-    earlier = np.zeros(i.size, bool) if distrusted is None else distrusted
-    return OdometrySuspects(earlier | new, jumps | (found.jumps & known) | earlier)
+    return OdometrySuspects(distrusted | new, jumps | (found.jumps & known) | distrusted)
 
 
 def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
