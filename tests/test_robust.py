@@ -261,6 +261,39 @@ def test_sparse_factors_share_one_elimination_order(monkeypatch: pytest.MonkeyPa
     np.testing.assert_allclose(other.solve(b), reference, rtol=1e-8, atol=1e-10)
 
 
+def test_shared_order_takes_supernodes_where_the_graph_fills_in_heavily(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 3D lattice's shared order says its factors fill in heavily (SuperLU's supernode
+    settings), a chain with closures' does not; either way a factorization in it solves
+    the system, and the same with the settings switched."""
+    from benchmarks.regime_cases import lattice_case
+    from rotavg_ros.core import sparse_factor
+
+    monkeypatch.setattr(gauss_newton, "DENSE_MAX", 10)
+    rng = np.random.default_rng(2)
+    lattice = lattice_case("test/lattice/14", 14, seed=1)
+    n = lattice.num_nodes
+    chain_i = np.concatenate([np.arange(n - 1), rng.integers(0, n, 60)])
+    chain_j = np.concatenate([np.arange(1, n), rng.integers(0, n, 60)])
+    keep = chain_i != chain_j
+    chain = (np.minimum(chain_i, chain_j)[keep], np.maximum(chain_i, chain_j)[keep])
+    for (i, j), heavy in (((lattice.i, lattice.j), True), (chain, False)):
+        w = 0.5 + rng.random(i.size)
+        L, nodes = anchored_laplacian(n, i, j, w)
+        b = rng.normal(size=(nodes.size, 3))
+        reference = np.linalg.solve(L.toarray(), b)
+        for threshold in (sparse_factor.SUPERNODE_MIN_FILL, 0.0):
+            monkeypatch.setattr(sparse_factor, "SUPERNODE_MIN_FILL", threshold)
+            order = gauss_newton.EliminationOrder(n, i, j)
+            assert order.supernodes == (heavy or threshold == 0.0)
+            token = gauss_newton.ELIMINATION_ORDER.set(order)
+            try:
+                factor = Factor(L, nodes, n)
+            finally:
+                gauss_newton.ELIMINATION_ORDER.reset(token)
+            np.testing.assert_allclose(factor.solve(b), reference, rtol=1e-8, atol=1e-10)
+
+
 def test_sparse_factor_solves_spd_systems_in_either_order() -> None:
     """:func:`factor_spd` with its supernode settings solves a chain-with-closures
     Laplacian and a block Laplacian (the chordal relaxation's kind) to rounding, in

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from benchmarks.regime_cases import lattice_case
-from rotavg_ros.core import chordal_init
+from rotavg_ros.core import chordal_init, sparse_factor
 from rotavg_ros.core.chordal_init import anchor_candidates, central_node, chordal_rotations
 from rotavg_ros.core.dmf.common import FitSpec
 from rotavg_ros.core.dmf.precondition import LaplacianPreconditioner
@@ -198,9 +198,9 @@ def test_chordal_start_takes_supernodes_where_the_factor_fills_in_heavily() -> N
     si, sj, sR, struth = _lattice(6, 5)  # small: compare both settings on it
     sw = np.ones(si.size)
     with mock.patch.object(chordal_init, "SUPERNODE_MIN_NODES", 0):
-        with mock.patch.object(chordal_init, "SUPERNODE_MIN_FILL", 0.0):
+        with mock.patch.object(sparse_factor, "SUPERNODE_MIN_FILL", 0.0):
             heavy = chordal_rotations(struth.shape[0], si, sj, sR, sw)
-        with mock.patch.object(chordal_init, "SUPERNODE_MIN_FILL", math.inf):
+        with mock.patch.object(sparse_factor, "SUPERNODE_MIN_FILL", math.inf):
             light = chordal_rotations(struth.shape[0], si, sj, sR, sw)
     assert np.abs(heavy - light).max() < 1e-9
     assert np.median(np.degrees(geodesic_distance(heavy, np.einsum(

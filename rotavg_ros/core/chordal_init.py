@@ -51,7 +51,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order
 
 from rotavg_ros.core.so3 import project_to_so3
-from rotavg_ros.core.sparse_factor import factor_spd
+from rotavg_ros.core.sparse_factor import factor_fills_heavily, factor_spd
 from rotavg_ros.core.types import FloatArray, IntArray
 
 ANCHOR_FRACTIONS = (0.5, 0.25, 0.75)
@@ -63,12 +63,6 @@ SUPERNODE_MIN_NODES = 2000
 """Nodes from which :func:`fills_heavily` factors the scalar Laplacian to find out (a
 tenth of the relaxation's own factorization time); below, the factor never fills in
 enough for SuperLU's supernodes to pay."""
-SUPERNODE_MIN_FILL = 120.0
-"""Entries per node of the scalar Laplacian's factor (L and U, minimum-degree order) from
-which the relaxation's block matrix is factored with SuperLU's supernode settings. Measured
-on 3D lattices with a snake trajectory (scratch, 2026-12-05): 74 per node, 2.9x slower
-with them; 122 and 145, 1.1x faster; 181, 1.4x; 221 (20^3 nodes), 2.0x. The SE-Sync pose
-graphs and the regime benchmark's chains have 8-35."""
 RELAXATIONS_KEPT = 4
 """Relaxations :func:`reused_relaxations` keeps (the latest)."""
 RELAXATIONS: ContextVar[dict[bytes, FloatArray] | None] = ContextVar(
@@ -104,7 +98,8 @@ def _digest(num_nodes: int, *arrays: FloatArray | IntArray) -> bytes:
 def fills_heavily(num_nodes: int, i: IntArray, j: IntArray, w: FloatArray,
                   deg: NDArray[Any], centre: int, pin: float) -> bool:
     """Whether the factor of the graph's scalar Laplacian (weights ``w``, degrees ``deg``,
-    ``centre`` pinned by ``pin``) holds at least :data:`SUPERNODE_MIN_FILL` entries per
+    ``centre`` pinned by ``pin``) holds at least
+    :data:`~rotavg_ros.core.sparse_factor.SUPERNODE_MIN_FILL` entries per
     node (from :data:`SUPERNODE_MIN_NODES` nodes on; fewer: False). The relaxation's block
     matrix fills in as it does, nine times over."""
     if num_nodes < SUPERNODE_MIN_NODES:
@@ -115,8 +110,7 @@ def fills_heavily(num_nodes: int, i: IntArray, j: IntArray, w: FloatArray,
     L = coo_matrix((np.concatenate([diagonal, -w, -w]),
                     (np.concatenate([nodes, i, j]), np.concatenate([nodes, j, i]))),
                    shape=(num_nodes, num_nodes)).tocsc()
-    lu = factor_spd(L)
-    return bool((lu.L.nnz + lu.U.nnz) / num_nodes >= SUPERNODE_MIN_FILL)
+    return factor_fills_heavily(factor_spd(L), num_nodes)
 
 
 def anchor_candidates(num_nodes: int, i: IntArray, j: IntArray) -> list[int]:

@@ -12,8 +12,8 @@ benchmarks.bench_sparse_factor``; docs/benchmarks.md, "SuperLU settings"). The f
 hold the same entries (no pivoting), up to rounding.
 
 Where the factor fills in heavily (a 3D lattice's chordal relaxation: 600 entries per
-column), SuperLU's own supernode settings are the faster ones again (``supernodes``; see
-:func:`~rotavg_ros.core.chordal_init.chordal_rotations`).
+column; its scalar Laplacian from about 150), SuperLU's own supernode settings are the
+faster ones again (``supernodes``; :func:`factor_fills_heavily`).
 """
 
 from __future__ import annotations
@@ -27,6 +27,14 @@ SUPERNODE_RELAX = 1
 leaves. It must not exceed ``PANEL_SIZE`` (SciPy 1.x crashed with 32 against 16)."""
 PANEL_SIZE = 1
 """SuperLU's ``panel_size``: columns factored together."""
+SUPERNODE_MIN_FILL = 120.0
+"""Entries per column of a factor (L and U, minimum-degree order) from which matrices of
+its pattern are factored with SuperLU's supernode settings (:func:`factor_fills_heavily`).
+Measured on 3D lattices (scratch, 2026-12-05 and 12-06): the chordal relaxation's block
+matrix at 74 per node of its scalar Laplacian 2.9x slower with them, 122 and 145 1.1x
+faster, 181 1.4x, 221 (20^3 nodes) 2.0x; the scalar Laplacian itself at 86-145 the same
+time, 181 1.2x faster, 221 1.5x, 244 (22^3) 1.6x; a 10,000-step grid-city walk's (65)
+1.9x slower. The SE-Sync pose graphs and the regime benchmark's chains have 8-35."""
 
 
 def factor_spd(A: Any, ordered: bool = False, supernodes: bool = False) -> SuperLU:
@@ -40,3 +48,10 @@ def factor_spd(A: Any, ordered: bool = False, supernodes: bool = False) -> Super
     settings = {} if supernodes else {"relax": SUPERNODE_RELAX, "panel_size": PANEL_SIZE}
     return splu(A, permc_spec="NATURAL" if ordered else "MMD_AT_PLUS_A",
                 diag_pivot_thresh=0.0, options={"SymmetricMode": True}, **settings)
+
+
+def factor_fills_heavily(lu: SuperLU, size: int) -> bool:
+    """Whether the factor ``lu`` of a ``size`` x ``size`` matrix holds at least
+    :data:`SUPERNODE_MIN_FILL` entries per column: factor matrices of its pattern with
+    ``supernodes``."""
+    return bool((lu.L.nnz + lu.U.nnz) / max(size, 1) >= SUPERNODE_MIN_FILL)
