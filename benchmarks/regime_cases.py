@@ -823,6 +823,61 @@ def dense_case(name: str, num_nodes: int, degree: float, *, outliers: float,
                       max(noise_deg, 1.0))
 
 
+def survey_case(name: str, strips: int, per_strip: int, *, false: float,
+                grouped: bool = False, noise_deg: float = 2.0, overlap: int = 3,
+                cross: int = 2, seed: int = 0, noise_model: str = "folded") -> RegimeCase:
+    """A drone's lawnmower survey, a photogrammetry view graph: ``strips`` strips of
+    ``per_strip`` nadir images, ids in capture order, every other strip flown the other
+    way (heading turned 180 deg; each image's yaw, roll and pitch jittered by 5, 3 and 3
+    deg). Images match the next ``overlap`` along the strip and those of the next strip
+    within ``cross`` positions of the same ground spot (mean degree about 15). False
+    matches are ``false`` of all edges: random pairs with random rotations, or where
+    ``grouped`` (repetitive texture: fields, roofs) runs of five images matched to five
+    of another place, one wrong rotation per run, so each run is mutually consistent.
+    What this tests: a banded view graph between the SLAM and the dense SfM regimes, whose
+    consecutive ids are true matches but no odometry."""
+    rng = rng_for(name, seed)
+    down = rotation_about_axis(np.array([[1.0, 0.0, 0.0]]), np.array([np.pi]))[0]
+    x_axis, y_axis, z_axis = np.eye(3)
+    ground: list[tuple[int, int]] = []
+    gt = []
+    for k in range(strips):
+        for s in range(per_strip):
+            ground.append((k, s if k % 2 == 0 else per_strip - 1 - s))
+            yaw = np.pi * (k % 2) + np.radians(rng.normal(0.0, 5.0))
+            roll, pitch = np.radians(rng.normal(0.0, 3.0, 2))
+            body = (rotation_about_axis(x_axis[None], np.array([roll]))[0]
+                    @ rotation_about_axis(y_axis[None], np.array([pitch]))[0]
+                    @ rotation_about_axis(z_axis[None], np.array([yaw]))[0])
+            gt.append((down @ body).T)
+    truth = np.asarray(gt)
+    n = truth.shape[0]
+    image = {spot: k for k, spot in enumerate(ground)}
+    pairs: set[tuple[int, int]] = set()
+    for a, (strip, x) in enumerate(ground):
+        near = [(strip, x + d) for d in range(1, overlap + 1)]
+        near += [(strip + 1, x + d) for d in range(-cross, cross + 1)]
+        for b in (image[spot] for spot in near if spot in image):
+            pairs.add((min(a, b), max(a, b)))
+    ti, tj = (np.asarray(v, np.int64) for v in zip(*sorted(pairs), strict=True))
+    count = int(round(ti.size * false / max(1e-9, 1.0 - false)))
+    if grouped:
+        fi, fj, false_R = grouped_false_edges(truth, pairs, -(-count // 5), (5, 5), 30,
+                                              noise_deg, rng, noise_model=noise_model)
+    else:
+        placed = _random_pairs(n, count, rng, lambda a, b: a == b or (a, b) in pairs,
+                               lambda a, b: pairs.add((a, b)))
+        fi, fj = np.asarray(placed, np.int64).reshape(-1, 2).T
+        false_R = false_rotations(relative(truth, fi, fj), rng)
+    R = np.concatenate([perturb(relative(truth, ti, tj), noise_deg, rng, noise_model),
+                        false_R])
+    inlier = np.r_[np.ones(ti.size, bool), np.zeros(fi.size, bool)]
+    desc = (f"lawnmower survey, {strips} strips of {per_strip} images, {ti.size} true "
+            f"matches, {fi.size} false ({'grouped' if grouped else 'random'})")
+    return RegimeCase(name, "sfm", n, np.r_[ti, fi], np.r_[tj, fj], R, truth, None,
+                      inlier, noise_deg, desc, max(noise_deg, 1.0))
+
+
 def ellis_case(name: str, shared: Path, *, extra: float = 0.0, seed: int = 0) -> RegimeCase:
     """Ellis Island (GT cameras only), optionally with ``extra * E`` false edges: random
     unobserved pairs carrying random rotations; the original edges count as inliers. The

@@ -1,6 +1,6 @@
 """Stress variants of the regimes (issue 14): ``python -m benchmarks.regime_stress``.
 
-Sixty-three cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
+Sixty-five cases outside the record suite of :mod:`benchmarks.regimes`: eighteen drawn
 with the suite's generators at parameters the suite does not use (noise between its levels,
 denser or grouped false closures, a sparse random view graph, a very heavy outlier share,
 dense graphs at 5 deg without false edges, short chains with 8 true loop closures and 2 or
@@ -33,7 +33,10 @@ corners, 20% false, 5 deg of heading noise; :func:`~benchmarks.regime_cases.grid
 and three along a car's trajectory (straight runs and sharp turns,
 :func:`~benchmarks.regime_cases.car_trajectory`): a 1,000-keyframe chain with 20% false
 closures, a route driven twice with 30% false, and that route clean but for one wrong
-odometry step (where a large step is common, the wrong one is no rare jump).
+odometry step (where a large step is common, the wrong one is no rare jump); and two
+drone surveys, a photogrammetry view graph of mean degree 15 flown in strips, with 30%
+random false matches or 20% in consistent runs of five (repetitive texture;
+:func:`~benchmarks.regime_cases.survey_case`).
 They look
 for regimes the suite misses; a finding that holds across draws becomes a suite case
 (``sfm/sparse200/out30`` came from here). Each case runs the suite's methods but the
@@ -78,6 +81,7 @@ from benchmarks.regime_cases import (
     reversed_case,
     revisit_case,
     slam_case,
+    survey_case,
     unweighted_case,
     weighted_case,
 )
@@ -261,6 +265,10 @@ def stress_cases(shared: Path, seed: int, model: str) -> list[Callable[[], Regim
              random_false=0.10),
         lambda: lattice_case("stress/lattice/16/rand10", 16, random_false=0.10, seed=seed,
                              noise_model=model),
+        lambda: survey_case("stress/survey/12x60/rand30", 12, 60, false=0.30, seed=seed,
+                            noise_model=model),
+        lambda: survey_case("stress/survey/12x60/grouped20", 12, 60, false=0.20,
+                            grouped=True, seed=seed, noise_model=model),
     ]
 
 

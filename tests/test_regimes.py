@@ -206,6 +206,34 @@ def test_grid_walk_case_closes_loops_at_revisited_corners() -> None:
         rc.grid_walk_case("test/grid-walk", 30, 8, closures=500)
 
 
+def test_survey_case_is_a_strip_flight_with_random_or_grouped_false_matches() -> None:
+    """Every image matches its strip neighbours and the next strip (consecutive ids are
+    true matches), the false share as asked, no pair twice; grouped false matches come in
+    runs of five that agree with each other (their 4-cycles close) and not with the
+    truth."""
+    case = rc.survey_case("test/survey", 6, 30, false=0.3)
+    assert case.num_nodes == 180 and case.family == "sfm" and case.inlier is not None
+    assert np.all(case.inlier[np.abs(case.i - case.j) == 1])
+    assert 12.0 < 2 * np.count_nonzero(case.inlier) / case.num_nodes < 16.0
+    assert abs(np.count_nonzero(~case.inlier) / case.num_edges - 0.3) < 0.01
+    assert len(set(zip(case.i.tolist(), case.j.tolist(), strict=True))) == case.num_edges
+    grouped = rc.survey_case("test/survey", 6, 30, false=0.2, grouped=True, noise_deg=0.0)
+    assert grouped.inlier is not None
+    false = np.flatnonzero(~grouped.inlier)
+    assert false.size % 5 == 0 and abs(false.size / grouped.num_edges - 0.2) < 0.01
+    measured = {(a, b): R for a, b, R in zip(grouped.i.tolist(), grouped.j.tolist(),
+                                             grouped.R, strict=True)}
+    for start in false[::5].tolist():
+        a, b = int(grouped.i[start]), int(grouped.j[start])
+        assert b - a >= 30 and (a + 4, b + 4) in measured
+        cycle = (measured[a, b] @ rc.relative(grouped.gt, np.array([b]), np.array([b + 1]))[0]
+                 @ measured[a + 1, b + 1].T
+                 @ rc.relative(grouped.gt, np.array([a + 1]), np.array([a]))[0])
+        assert np.degrees(rotation_angle(cycle)) < 1e-6
+        off = measured[a, b] @ rc.relative(grouped.gt, np.array([a]), np.array([b]))[0].T
+        assert np.degrees(rotation_angle(off)) >= rc.MIN_FALSE_DEG
+
+
 def test_car_trajectory_drives_straight_and_turns_sharply() -> None:
     """Most steps small (straight runs), about one in ten at least 10 deg (the turns), none
     much above 90 deg; rotations proper; pitch and roll small; the same draw twice; the chain and
