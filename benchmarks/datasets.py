@@ -7,19 +7,25 @@ must skip with a clear message.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import sys
 from collections.abc import Hashable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rotavg_ros.core.types import FloatArray
+import numpy as np
+
+from rotavg_ros.core.types import FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
 from rotavg_ros.io.g2o import read_g2o
 from rotavg_ros.io.onedsfm import read_1dsfm_npz, read_rotations_npz
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SE_SYNC_GRAPHS = ("smallGrid3D", "parking-garage", "sphere2500", "torus3D")
+CITY10000_FILES = ("T1_city10000_04.txt", "ISAM2_GT_city10000.txt")
+"""gtsam's City10000 (its hybrid-inference example): the measurements, two hypotheses at
+200 odometry steps, and the ground-truth poses (x, y, heading per line)."""
 
 
 @dataclass
@@ -62,3 +68,49 @@ def load_se_sync(shared: Path, name: str) -> Benchmark:
     g = read_g2o(shared / f"data/se_sync_3d/{name}.g2o")
     ref = read_rotations_npz(shared / f"reference/se_sync_3d/{name}.npz")
     return Benchmark(name, g.graph, {k: r for k, r in ref.items()}, "certified optimum")
+
+
+def find_gtsam_data() -> Path | None:
+    """The ``Data`` folder that the gtsam wheel (the ``bench`` extra) installs, found
+    without importing gtsam; None where gtsam is not installed or ships no such folder."""
+    spec = importlib.util.find_spec("gtsam")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return next((Path(loc) / "Data" for loc in spec.submodule_search_locations
+                 if (Path(loc) / "Data").is_dir()), None)
+
+
+@dataclass
+class PlanarHeadings:
+    """A planar pose graph's headings (radians): each edge ``(i, j)`` measures ``theta_j -
+    theta_i`` (the rotation of ``pose_i^-1 pose_j``); ``alternative`` is an edge's second
+    hypothesis (NaN where the front end gave one)."""
+
+    i: IntArray
+    j: IntArray
+    measured: FloatArray
+    alternative: FloatArray
+    truth: FloatArray
+    """Ground-truth heading of each node."""
+
+
+def load_city10000(data: Path) -> PlanarHeadings:
+    """City10000 from gtsam's data folder (:data:`CITY10000_FILES`): 10,000 poses, 9,999
+    odometry steps, 10,688 loop closures; at 200 steps the front end gave two hypotheses
+    (``EDGE2 i _ j _ count x y theta [x y theta]``)."""
+    i, j, measured, alternative = [], [], [], []
+    with open(data / CITY10000_FILES[0], encoding="ascii") as f:
+        for line in f:
+            field = line.split()
+            if not field or field[0] != "EDGE2":
+                continue
+            count = int(field[5])
+            if count not in (1, 2) or len(field) != 6 + 3 * count:
+                raise ValueError(f"City10000: unexpected line {line.strip()!r}")
+            i.append(int(field[1]))
+            j.append(int(field[3]))
+            measured.append(float(field[8]))
+            alternative.append(float(field[11]) if count == 2 else np.nan)
+    truth = np.loadtxt(data / CITY10000_FILES[1], ndmin=2)[:, 2]
+    return PlanarHeadings(np.array(i, np.int64), np.array(j, np.int64), np.array(measured),
+                          np.array(alternative), truth)

@@ -40,7 +40,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import csr_matrix
 
-from benchmarks.datasets import load_ellis_island, load_se_sync
+from benchmarks.datasets import (
+    find_gtsam_data,
+    load_city10000,
+    load_ellis_island,
+    load_se_sync,
+)
 from rotavg_ros.core.so3 import (
     exp_map,
     random_rotations,
@@ -928,6 +933,36 @@ def real_case(name: str, shared: Path, graph: str) -> RegimeCase:
                       e.R.copy(), gt, w, None, None, f"{graph} as measured (g2o)", sigma)
 
 
+def city10000_case(name: str, data: Path, wrong_hypotheses: bool = False) -> RegimeCase:
+    """gtsam's City10000 (:func:`~benchmarks.datasets.load_city10000`), a planar robot's
+    pose graph with ground truth, as headings (rotations about z: world-to-node ``R_i =
+    Rz(-theta_i)``, so an edge measures ``R_i R_j^T = Rz(theta_j - theta_i)``). At each of
+    the 200 steps where the front end gave two hypotheses, the one the ground truth agrees
+    with (a real graph as measured, family ``real``), or with ``wrong_hypotheses`` the other
+    one: a front end that lost its track 200 times, 2% of the steps (family ``slam``, the
+    200 steps false). The noise scale handed to GNC-TLS is the true edges' spread about
+    the ground truth (0.58 deg)."""
+    h = load_city10000(data)
+    gt = rotation_about_axis(np.array([0.0, 0.0, 1.0]), -h.truth)
+    truth = h.truth[h.j] - h.truth[h.i]
+
+    def off(theta: FloatArray) -> FloatArray:
+        return np.abs(np.angle(np.exp(1j * (theta - truth))))
+
+    two = ~np.isnan(h.alternative)
+    right = np.where(two & (off(h.alternative) < off(h.measured)), h.alternative, h.measured)
+    wrong = np.where(two & (off(h.alternative) < off(h.measured)), h.measured, h.alternative)
+    theta = np.where(two, wrong, right) if wrong_hypotheses else right
+    R = rotation_about_axis(np.array([0.0, 0.0, 1.0]), theta)
+    sigma = float(np.degrees(np.std(np.angle(np.exp(1j * (right - truth))))))
+    if not wrong_hypotheses:
+        return RegimeCase(name, "real", h.truth.size, h.i, h.j, R, gt, None, None, None,
+                          "City10000 as measured (gtsam data; headings)", sigma)
+    return RegimeCase(name, "slam", h.truth.size, h.i, h.j, R, gt, None, ~two, None,
+                      "City10000, its 200 two-hypothesis odometry steps at the wrong one",
+                      sigma)
+
+
 # ------------------------------------------------------------------------ case list
 
 CaseBuilder = Callable[[Path], RegimeCase]
@@ -958,6 +993,15 @@ def all_cases(seed: int = 0, noise_model: str = "folded") -> dict[str, CaseBuild
 
     def real(graph: str) -> tuple[str, CaseBuilder]:
         return f"real/{graph}", lambda shared: real_case(f"real/{graph}", shared, graph)
+
+    def city(name: str, data: Path, wrong: bool) -> tuple[str, CaseBuilder]:
+        return name, lambda shared: city10000_case(name, data, wrong)
+
+    gtsam_data = find_gtsam_data()
+    # gtsam's City10000 where the bench extra installed it (else absent: ``--list`` says so)
+    city_cases = [] if gtsam_data is None else [
+        city("real/city10000", gtsam_data, False),
+        city("slam/city10000/lost-track200", gtsam_data, True)]
 
     cases: list[tuple[str, CaseBuilder]] = [
         # SLAM topologies, regenerated measurements. Outlier-only cases carry 1 deg noise.
@@ -1002,6 +1046,7 @@ def all_cases(seed: int = 0, noise_model: str = "folded") -> dict[str, CaseBuild
         dense("sfm/sparse200/out30", 200, 10, outliers=0.3),
         # Real measurements.
         *(real(g) for g in ("smallGrid3D", "parking-garage", "sphere2500", "torus3D")),
+        *city_cases,
     ]
     return dict(cases)
 

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks import peers
-from benchmarks.datasets import shared_dir_or_say
+from benchmarks.datasets import find_gtsam_data, shared_dir_or_say
 from benchmarks.regime_cases import FAMILIES, NOISE_MODELS, QUICK, RegimeCase, all_cases
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
@@ -390,6 +390,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="our solver's device (default cpu; the peers always run on the CPU)")
     args = p.parse_args(argv)
     builders = all_cases(args.seed, args.noise_model)
+    if find_gtsam_data() is None:
+        print("regimes: gtsam's data folder not found (the bench extra): the City10000 cases "
+              "are left out", file=sys.stderr)
     names = select(list(builders), args.cases, args.quick)
     if args.list:
         for n in names:

@@ -234,6 +234,34 @@ def test_survey_case_is_a_strip_flight_with_random_or_grouped_false_matches() ->
         assert np.degrees(rotation_angle(off)) >= rc.MIN_FALSE_DEG
 
 
+
+def test_city10000_case_reads_headings_and_picks_each_hypothesis_by_the_truth(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A five-pose file in City10000's format: headings become rotations about z with
+    ``R_i R_j^T`` the measured turn ``theta_j - theta_i``; at the two-hypothesis step the
+    case takes the one the truth agrees with (here the second), or with
+    ``wrong_hypotheses`` the other, marked false; without gtsam's data the suite leaves the
+    two City10000 cases out."""
+    truth = np.array([0.0, 0.1, 1.6, 1.5, -3.0])
+    lines = ["EDGE2 0 1 1 0 1 1.0 0.0 0.1", "EDGE2 1 1 2 0 2 1.0 0.0 0.9 1.0 0.0 1.5",
+             "EDGE2 2 1 3 0 1 1.0 0.0 -0.1", "EDGE2 3 1 4 0 1 1.0 0.0 1.78318531",
+             "EDGE2 0 1 3 0 1 1.0 0.0 1.5"]
+    (tmp_path / "T1_city10000_04.txt").write_text("\n".join(lines) + "\n")
+    (tmp_path / "ISAM2_GT_city10000.txt").write_text(
+        "\n".join(f"{k} 0 {t}" for k, t in enumerate(truth)) + "\n")
+    case = rc.city10000_case("real/city10000", tmp_path)
+    assert case.family == "real" and case.inlier is None and case.num_edges == 5
+    assert np.max(_angles_deg(case.R, rc.relative(case.gt, case.i, case.j))) < 1e-6
+    assert np.allclose(case.gt[:, 2, 2], 1.0) and case.has_odometry
+    wrong = rc.city10000_case("slam/city10000/lost-track", tmp_path, wrong_hypotheses=True)
+    assert wrong.family == "slam" and wrong.inlier is not None
+    assert wrong.inlier.tolist() == [True, False, True, True, True]
+    assert abs(np.degrees(rotation_angle(wrong.R[1])) - np.degrees(0.9)) < 1e-6
+    monkeypatch.setattr(rc, "find_gtsam_data", lambda: tmp_path)
+    assert "slam/city10000/lost-track200" in rc.all_cases()
+    monkeypatch.setattr(rc, "find_gtsam_data", lambda: None)
+    assert not any("city10000" in name for name in rc.all_cases())
+
 def test_car_trajectory_drives_straight_and_turns_sharply() -> None:
     """Most steps small (straight runs), about one in ten at least 10 deg (the turns), none
     much above 90 deg; rotations proper; pitch and roll small; the same draw twice; the chain and

@@ -15,7 +15,7 @@ from benchmarks import regime_cases as rc
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.robust.closure_runs import closure_runs
-from rotavg_ros.core.robust.gauss_newton import refine_least_squares
+from rotavg_ros.core.robust.gauss_newton import refine_least_squares, residual_angles
 from rotavg_ros.core.robust.relocalize_blocks import block_turns, find_bridges
 from rotavg_ros.core.robust.verify import (
     _fit_and_classify,
@@ -23,6 +23,7 @@ from rotavg_ros.core.robust.verify import (
     squares_by_pieces,
     truncated_squares,
     turn_blocks,
+    turn_more_blocks,
 )
 from rotavg_ros.core.solver import RotationAverager
 
@@ -225,6 +226,64 @@ def test_a_wrong_step_no_break_test_caught_is_cut() -> None:
     assert result.num_distrusted_odometry == 1
     assert result.num_trusted_odometry == 48
 
+
+
+def _lost_track_nodes(seed: int = 0) -> dict[str, np.ndarray]:
+    """A 60-keyframe chain (0.5 deg noise), each keyframe closed to those 5, 10 and 15
+    ahead, and three wrong steps into keyframes 12, 30 and 47, each of which ``rot`` places
+    by its wrong step (trusted) while the break test left out its true next step: a lost
+    track that left single nodes turned, each held by one trusted edge, five to seven true
+    ones rejected (City10000 with its wrong hypotheses: 21 such nodes after the first turn)."""
+    rng = np.random.default_rng(seed)
+    n = 60
+    gt = rc.chain_trajectory(n, rng)
+    pairs = [(k, k + 1) for k in range(n - 1)] + [(k, k + d) for d in (5, 10, 15)
+                                                  for k in range(n - d)]
+    i = np.array([p[0] for p in pairs], np.int64)
+    j = np.array([p[1] for p in pairs], np.int64)
+    R = rc.perturb(rc.relative(gt, i, j), 0.5, rng)
+    wrong = np.array([11, 29, 46])  # the steps (11, 12), (29, 30), (46, 47)
+    R[wrong] = rc.false_rotations(R[wrong], rng, min_deg=60.0)
+    rot = gt.copy()
+    for e in wrong:  # R_b = R_ab^T R_a: node b follows its wrong step
+        rot[e + 1] = R[e].T @ rot[e]
+    known = np.abs(i - j) == 1
+    known[wrong + 1] = False  # the true steps out of those nodes: left out
+    return {"gt": gt, "i": i, "j": j, "R": R, "rot": rot, "known": known, "wrong": wrong}
+
+
+def test_single_nodes_held_by_wrong_steps_turn_together_in_one_round() -> None:
+    case = _lost_track_nodes()
+    i, j, R, rot, known = case["i"], case["j"], case["R"], case["rot"], case["known"]
+    w = np.ones(i.size)
+    far = np.array([12, 30, 47])
+    assert _mean_error(rot, case["gt"]) > 3.0
+    # One node per block: each is proposed (its rejected true edges agree).
+    turns = block_turns(rot, i, j, R, w, math.radians(3.0), math.radians(30.0), known,
+                        breakable=np.abs(i - j) == 1, limit=10)
+    assert sorted(int(t.nodes[0]) for t in turns if t.nodes.size == 1) == far.tolist()
+    tree = chain_tree(case["gt"].shape[0], i, j, w)
+    inlier = (residual_angles(rot, i, j, R) < math.radians(5.0)) | known
+    noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, math.radians(90.0), tree)
+    kwargs = {"tree": tree, "rounds": 2, "max_threshold": math.radians(90.0),
+              "initial_threshold": math.radians(30.0), "closures": np.abs(i - j) != 1,
+              "steps": np.abs(i - j) == 1, "breakable": np.abs(i - j) == 1}
+    # Each turn cuts a trusted step (BREAK_PENALTY caps more) and explains five to seven
+    # true edges: turn_blocks turns one node, turn_more_blocks all three, with one re-fit.
+    one = turn_blocks(rot, i, j, R, w, (inlier, noise, t), known, **kwargs)
+    assert one is not None and one[4] == 1
+    out = turn_more_blocks(rot, i, j, R, w, (inlier, noise, t), known, **kwargs)
+    assert out is not None
+    turned, kept, _, _, moved, trusted = out
+    assert moved == 3
+    errors = evaluate(dict(enumerate(turned)), dict(enumerate(case["gt"]))).errors
+    assert max(errors) < 2.0 and _mean_error(turned, case["gt"]) < 0.6
+    assert not kept[case["wrong"]].any() and not trusted[case["wrong"]].any()
+    assert kept[case["wrong"] + 1].all() and trusted.sum() == known.sum() - 3
+    # Where the true steps are trusted too, each node is held by two trusted steps: no
+    # block, no turn.
+    assert turn_more_blocks(rot, i, j, R, w, (inlier, noise, t), np.abs(i - j) == 1,
+                            **kwargs) is None
 
 def test_a_turn_is_a_rotation_in_the_blocks_own_frames() -> None:
     # The turn M right-multiplies the block's world-to-node rotations: edges inside the

@@ -27,8 +27,9 @@ only the step with the largest measured rotation is proposed (a lost track's ste
 random rotation, rarely as small as a keyframe's usual motion), and none where an
 untrusted bridge has the same edges across.
 
-For each such cut, with at least two nodes on each side, the nodes on
-the side away from node 0 turn as ``R_k <- R_k M``: edges inside the block and outside it
+For each such cut, with two nodes or more on the other side (a single node held by one
+wrong step is a block too: its own edges across are the evidence), the nodes on the side
+away from node 0 turn as ``R_k <- R_k M``: edges inside the block and outside it
 keep their residuals. A rejected edge ``(a, b)`` from the block to the rest predicts ``M =
 R_a^T R_ab R_b`` (``a`` in the block) or ``R_b^T R_ab^T R_a`` (``b`` in the block). The
 largest group of predictions within ``tolerance`` of one of them proposes the turn to their
@@ -162,9 +163,9 @@ def block_turns(
     """Up to ``limit`` block turns (module docstring), the best supported first: for each
     cut of the edges ``rot`` explains (residual ``sqrt(w) * angle`` within ``cap``, or
     ``trusted``) by one piece of evidence that is not trusted (a bridge, or a run of
-    ``closures``, :func:`~.closure_runs.closure_runs`), with two nodes or more on each
-    side, the largest group of unexplained crossing edges whose predicted turns lie within
-    ``tolerance`` of one of them, where it is at least two independent pieces of evidence
+    ``closures``, :func:`~.closure_runs.closure_runs`), with two nodes or more on the
+    other side, the largest group of unexplained crossing edges whose predicted turns lie
+    within ``tolerance`` of one of them, where it is at least two independent pieces of evidence
     (:func:`~.closure_runs.independent_pieces`) and its turn lies farther than
     ``tolerance`` from the block's placement. ``breakable``: trusted edges whose bridges are
     cuts too (module docstring)."""
@@ -179,7 +180,7 @@ def block_turns(
     may_break = (np.zeros(i.size, bool) if breakable is None else breakable) & known
     step_angle = rotation_angle(R) if may_break.any() else None
     for cut, side, component in _cuts(n, i, j, keep, known, runs_of, may_break, step_angle):
-        if side.sum() < 2 or component - side.sum() < 2:
+        if component - side.sum() < 2:
             continue
         in_a, in_b = side[i[unexplained]], side[j[unexplained]]
         e = unexplained[in_a != in_b]
@@ -239,11 +240,19 @@ def _cuts(n: int, i: IntArray, j: IntArray, keep: BoolArray, known: BoolArray,
         lo, hi = bridges.pre[v], bridges.pre[v] + bridges.size[v]
         out.append((np.array([bridge]), (bridges.pre >= lo) & (bridges.pre < hi),
                     int(bridges.component_size[v])))
-    for run in closure_runs(i, j, keep & closures & ~known):
+    runs = closure_runs(i, j, keep & closures & ~known)
+    if runs:
+        # A run splits nothing whose first edge's ends stay joined without every run's
+        # edges (a subgraph of the graph without that run): one labelling skips most.
+        without_runs = keep.copy()
+        without_runs[np.concatenate(runs)] = False
+        joined = _labels(n, i, j, without_runs)
+    for run in runs:
+        if joined[i[run[0]]] == joined[j[run[0]]]:
+            continue
         rest = keep.copy()
         rest[run] = False
-        graph = coo_matrix((np.ones(int(rest.sum())), (i[rest], j[rest])), shape=(n, n))
-        label = connected_components(graph, directed=False)[1]
+        label = _labels(n, i, j, rest)
         a, b = label[i[run]], label[j[run]]
         ends = {int(a[0]), int(b[0])}
         if len(ends) < 2 or not all({int(x), int(y)} == ends for x, y in zip(a, b, strict=True)):
@@ -251,6 +260,12 @@ def _cuts(n: int, i: IntArray, j: IntArray, keep: BoolArray, known: BoolArray,
         far = int(b[0]) if label[0] == a[0] else int(a[0])
         out.append((run, label == far, int(np.count_nonzero(np.isin(label, list(ends))))))
     return out
+
+
+def _labels(n: int, i: IntArray, j: IntArray, keep: BoolArray) -> IntArray:
+    """Connected-component label of each node in the graph of the ``keep`` edges."""
+    graph = coo_matrix((np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n))
+    return np.asarray(connected_components(graph, directed=False)[1])
 
 
 def _one_step_per_crossing(bridges: Bridges, edges: IntArray, child: IntArray, i: IntArray,

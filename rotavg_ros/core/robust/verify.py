@@ -123,7 +123,7 @@ from rotavg_ros.core.robust.odometry_breaks import (
 )
 from rotavg_ros.core.robust.odometry_start import odometry_start
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
-from rotavg_ros.core.robust.relocalize_blocks import block_turns
+from rotavg_ros.core.robust.relocalize_blocks import BlockTurn, block_turns
 from rotavg_ros.core.threads import map_in_threads
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
@@ -166,6 +166,15 @@ mean -> 9.06)."""
 BENT_CUTS = 2
 """Jumps cut, one after the other, where a route bent around them
 (:func:`~.bent_routes.cut_bent_jump`): a lost track rarely breaks more than twice."""
+
+MORE_TURN_ROUNDS = 6
+"""Rounds of further block turns once one stood (:func:`turn_more_blocks`): each round
+turns, together, the blocks that the round's proposals turn apart from one another."""
+
+MORE_TURNS = 200
+"""Block turns proposed in each of those rounds. A front end that lost its track often
+leaves many blocks (gtsam's City10000 with the second of its 200 ambiguous odometry
+measurements: 200 wrong steps, 114 nodes far off after the first turn)."""
 
 MIN_NOISE_RESIDUALS = 5
 """Fewest informative standardized residuals (:func:`standardized_residuals`) a noise
@@ -744,13 +753,18 @@ def robust_resolve(
     # A trusted step may be cut there too (a wrong step the break test did not catch); a
     # jump cut so pays no penalty, as one the break test cut, where jumps are rare (where
     # they are common, a car's turns, a step's size is no evidence of a lost track).
-    turned = turn_blocks(rot, i, j, R, w, (inlier, noise, t), known, tree=tree,
-                         rounds=rounds, max_threshold=max_threshold,
-                         initial_threshold=initial_threshold,
-                         closures=~odometry if has_odometry else None,
-                         steps=odometry & ~jumps & ~(known & rare_jumps(R, odometry)),
-                         breakable=odometry)
-    if turned is not None:
+    # Once a turn stands, more rounds turn the blocks left, many at a time
+    # (:func:`turn_more_blocks`): a lost track can break many steps.
+    for turn_round in range(1 + MORE_TURN_ROUNDS):
+        turner = turn_more_blocks if turn_round else turn_blocks
+        turned = turner(rot, i, j, R, w, (inlier, noise, t), known, tree=tree,
+                        rounds=rounds, max_threshold=max_threshold,
+                        initial_threshold=initial_threshold,
+                        closures=~odometry if has_odometry else None,
+                        steps=odometry & ~jumps & ~(known & rare_jumps(R, odometry)),
+                        breakable=odometry)
+        if turned is None:
+            break
         rot, inlier, noise, t, moved_nodes, still_trusted = turned
         relocalized += moved_nodes
         cap = _cap(noise, initial_threshold)
@@ -824,11 +838,83 @@ def turn_blocks(
                         initial_threshold)
         sigma = _judged_scale((noise, t_fit, inlier), (moved[2], moved[3], moved[1]))
         c, mean_square = min(GNC_SIGMAS * sigma, initial_threshold), noise.axes * sigma ** 2
-        cut_steps = 0 if steps is None else int(np.count_nonzero(steps[turn.cut]))
         if (squares_by_pieces(moved[0], i, j, R, w, c, trusted, runs, mean_square)
-                + BREAK_PENALTY * cut_steps * c * c
+                + BREAK_PENALTY * _breaks_cut(turn, steps) * c * c
                 < squares_by_pieces(rot, i, j, R, w, c, trusted, runs, mean_square)):
             return (*moved, turn.relocalized, trusted)
+    return None
+
+
+def _breaks_cut(turn: BlockTurn, steps: BoolArray | None) -> int:
+    """The ``steps`` (odometry that pays ``BREAK_PENALTY`` when cut) a block ``turn`` cuts."""
+    return 0 if steps is None else int(np.count_nonzero(steps[turn.cut]))
+
+
+def turn_more_blocks(
+    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    fit: tuple[BoolArray, NoiseModel, FloatArray], known: BoolArray, *, tree: BoolArray,
+    rounds: int, max_threshold: float, initial_threshold: float,
+    closures: BoolArray | None = None, steps: BoolArray | None = None,
+    breakable: BoolArray | None = None,
+) -> tuple[FloatArray, BoolArray, NoiseModel, FloatArray, int, BoolArray] | None:
+    """One round of further block turns, as :func:`turn_blocks` (the same arguments and
+    result), for graphs with many blocks to turn: up to :data:`MORE_TURNS` proposals
+    (:func:`~.relocalize_blocks.block_turns`), each judged alone on the edges that cross
+    its block (the truncated squares at ``GNC_SIGMAS`` noise scales, before a re-fit, plus
+    ``BREAK_PENALTY`` caps for each of the ``steps`` it cuts), the best supported first; those that
+    lower them and touch no block taken before (no shared node, no edge between the two)
+    turn together, then one re-fit and settling as in :func:`turn_blocks`, which stands
+    where it lowers the truncated squares of the whole graph by pieces, the added breaks'
+    penalties included. One re-fit for all: turning 40 blocks one at a time cost City10000
+    40 re-fits of its 10,000 nodes."""
+    inlier, noise, t_fit = fit
+    if not math.isfinite(noise.sigma):
+        return None
+    turns = block_turns(rot, i, j, R, w, _cap(noise, initial_threshold), initial_threshold,
+                        known, closures, breakable=breakable, limit=MORE_TURNS)
+    c = min(GNC_SIGMAS * noise.sigma, initial_threshold)
+    squares = residual_angles(rot, i, j, R) ** 2 * w
+    taken = np.zeros(rot.shape[0], bool)  # the chosen blocks' nodes
+    touched = np.zeros(rot.shape[0], bool)  # and the nodes their crossing edges reach
+    chosen: list[BlockTurn] = []
+    for turn in turns:
+        block = np.zeros(rot.shape[0], bool)
+        block[turn.nodes] = True
+        cross = np.flatnonzero(block[i] != block[j])
+        ends = np.concatenate([i[cross], j[cross]])
+        if touched[turn.nodes].any() or taken[ends].any():
+            continue
+        turned = rot.copy()
+        turned[turn.nodes] = rot[turn.nodes] @ turn.turn
+        trusted = known.copy()
+        trusted[turn.cut] = False
+        after = residual_angles(turned, i[cross], j[cross], R[cross]) ** 2 * w[cross]
+        if (_capped_sum(after, c * c, trusted[cross])
+                + BREAK_PENALTY * _breaks_cut(turn, steps) * c * c
+                < _capped_sum(squares[cross], c * c, known[cross])):
+            chosen.append(turn)
+            taken[turn.nodes] = True
+            touched[ends] = True
+    if not chosen:
+        return None
+    turned, trusted, held = rot.copy(), known.copy(), inlier | known
+    for turn in chosen:
+        turned[turn.nodes] = rot[turn.nodes] @ turn.turn
+        trusted[turn.cut] = False
+        held[turn.cut] = False
+    for turn in chosen:
+        held[turn.joins] = True
+    added = sum(_breaks_cut(turn, steps) for turn in chosen)
+    turned = refine_least_squares(turned, i, j, R, w * held)
+    moved = _settle(turned, i, j, R, w, held, trusted, tree, rounds, max_threshold,
+                    initial_threshold)
+    sigma = _judged_scale((noise, t_fit, inlier), (moved[2], moved[3], moved[1]))
+    c, mean_square = min(GNC_SIGMAS * sigma, initial_threshold), noise.axes * sigma ** 2
+    runs = closure_runs(i, j, closures & ~known) if closures is not None else []
+    if (squares_by_pieces(moved[0], i, j, R, w, c, trusted, runs, mean_square)
+            + BREAK_PENALTY * added * c * c
+            < squares_by_pieces(rot, i, j, R, w, c, trusted, runs, mean_square)):
+        return (*moved, sum(turn.relocalized for turn in chosen), trusted)
     return None
 
 
