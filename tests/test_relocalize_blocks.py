@@ -23,7 +23,6 @@ from rotavg_ros.core.robust.verify import (
     squares_by_pieces,
     truncated_squares,
     turn_blocks,
-    turn_more_blocks,
 )
 from rotavg_ros.core.solver import RotationAverager
 
@@ -269,10 +268,10 @@ def test_single_nodes_held_by_wrong_steps_turn_together_in_one_round() -> None:
               "initial_threshold": math.radians(30.0), "closures": np.abs(i - j) != 1,
               "steps": np.abs(i - j) == 1, "breakable": np.abs(i - j) == 1}
     # Each turn cuts a trusted step (BREAK_PENALTY caps more) and explains five to seven
-    # true edges: turn_blocks turns one node, turn_more_blocks all three, with one re-fit.
+    # true edges: turn_blocks turns one node, and with ``together`` all three, one re-fit.
     one = turn_blocks(rot, i, j, R, w, (inlier, noise, t), known, **kwargs)
     assert one is not None and one[4] == 1
-    out = turn_more_blocks(rot, i, j, R, w, (inlier, noise, t), known, **kwargs)
+    out = turn_blocks(rot, i, j, R, w, (inlier, noise, t), known, together=True, **kwargs)
     assert out is not None
     turned, kept, _, _, moved, trusted = out
     assert moved == 3
@@ -282,8 +281,8 @@ def test_single_nodes_held_by_wrong_steps_turn_together_in_one_round() -> None:
     assert kept[case["wrong"] + 1].all() and trusted.sum() == known.sum() - 3
     # Where the true steps are trusted too, each node is held by two trusted steps: no
     # block, no turn.
-    assert turn_more_blocks(rot, i, j, R, w, (inlier, noise, t), np.abs(i - j) == 1,
-                            **kwargs) is None
+    assert turn_blocks(rot, i, j, R, w, (inlier, noise, t), np.abs(i - j) == 1,
+                       together=True, **kwargs) is None
 
 def test_a_turn_is_a_rotation_in_the_blocks_own_frames() -> None:
     # The turn M right-multiplies the block's world-to-node rotations: edges inside the

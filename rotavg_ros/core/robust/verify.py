@@ -123,7 +123,7 @@ from rotavg_ros.core.robust.odometry_breaks import (
 )
 from rotavg_ros.core.robust.odometry_start import odometry_start
 from rotavg_ros.core.robust.relocalize import relocalize_nodes
-from rotavg_ros.core.robust.relocalize_blocks import BlockTurn, block_turns
+from rotavg_ros.core.robust.relocalize_blocks import MAX_TURNS, BlockTurn, block_turns
 from rotavg_ros.core.threads import map_in_threads
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
@@ -168,8 +168,9 @@ BENT_CUTS = 2
 (:func:`~.bent_routes.cut_bent_jump`): a lost track rarely breaks more than twice."""
 
 MORE_TURN_ROUNDS = 6
-"""Rounds of further block turns once one stood (:func:`turn_more_blocks`): each round
-turns, together, the blocks that the round's proposals turn apart from one another."""
+"""Rounds of further block turns once one stood (:func:`turn_blocks` ``together``): each
+round turns, together, the blocks that the round's proposals turn apart from one
+another."""
 
 MORE_TURNS = 200
 """Block turns proposed in each of those rounds. A front end that lost its track often
@@ -754,15 +755,14 @@ def robust_resolve(
     # jump cut so pays no penalty, as one the break test cut, where jumps are rare (where
     # they are common, a car's turns, a step's size is no evidence of a lost track).
     # Once a turn stands, more rounds turn the blocks left, many at a time
-    # (:func:`turn_more_blocks`): a lost track can break many steps.
+    # (``together``): a lost track can break many steps.
     for turn_round in range(1 + MORE_TURN_ROUNDS):
-        turner = turn_more_blocks if turn_round else turn_blocks
-        turned = turner(rot, i, j, R, w, (inlier, noise, t), known, tree=tree,
-                        rounds=rounds, max_threshold=max_threshold,
-                        initial_threshold=initial_threshold,
-                        closures=~odometry if has_odometry else None,
-                        steps=odometry & ~jumps & ~(known & rare_jumps(R, odometry)),
-                        breakable=odometry)
+        turned = turn_blocks(rot, i, j, R, w, (inlier, noise, t), known, tree=tree,
+                             rounds=rounds, max_threshold=max_threshold,
+                             initial_threshold=initial_threshold,
+                             closures=~odometry if has_odometry else None,
+                             steps=odometry & ~jumps & ~(known & rare_jumps(R, odometry)),
+                             breakable=odometry, together=turn_round > 0)
         if turned is None:
             break
         rot, inlier, noise, t, moved_nodes, still_trusted = turned
@@ -790,7 +790,7 @@ def turn_blocks(
     fit: tuple[BoolArray, NoiseModel, FloatArray], known: BoolArray, *, tree: BoolArray,
     rounds: int, max_threshold: float, initial_threshold: float,
     closures: BoolArray | None = None, steps: BoolArray | None = None,
-    breakable: BoolArray | None = None,
+    breakable: BoolArray | None = None, together: bool = False,
 ) -> tuple[FloatArray, BoolArray, NoiseModel, FloatArray, int, BoolArray] | None:
     """Step 5's block turns: the first turn proposed by
     :func:`~.relocalize_blocks.block_turns` (at the fit's cap, ``initial_threshold`` the
@@ -817,62 +817,72 @@ def turn_blocks(
     :func:`_breaks_explain_more`: odometry is rarely wrong, and two false edges that happen
     to agree must not cut a true step (a 50-keyframe chain with 7 false closures and two
     wrong steps: a true step cut for a wrong step and a false closure, 2.03 -> 7.83 deg
-    mean without the penalty)."""
-    inlier, noise, t_fit = fit
-    if not math.isfinite(noise.sigma):
-        return None
-    cap = _cap(noise, initial_threshold)
-    turns = block_turns(rot, i, j, R, w, cap, initial_threshold, known, closures,
-                        breakable=breakable)
-    runs = closure_runs(i, j, closures & ~known) if turns and closures is not None else []
-    for turn in turns:
-        turned = rot.copy()
-        turned[turn.nodes] = rot[turn.nodes] @ turn.turn
-        trusted = known.copy()
-        trusted[turn.cut] = False  # (a trusted step cut: capped in both fits' squares)
-        held = inlier | known
-        held[turn.cut] = False
-        held[turn.joins] = True
-        turned = refine_least_squares(turned, i, j, R, w * held)
-        moved = _settle(turned, i, j, R, w, held, trusted, tree, rounds, max_threshold,
-                        initial_threshold)
-        sigma = _judged_scale((noise, t_fit, inlier), (moved[2], moved[3], moved[1]))
-        c, mean_square = min(GNC_SIGMAS * sigma, initial_threshold), noise.axes * sigma ** 2
-        if (squares_by_pieces(moved[0], i, j, R, w, c, trusted, runs, mean_square)
-                + BREAK_PENALTY * _breaks_cut(turn, steps) * c * c
-                < squares_by_pieces(rot, i, j, R, w, c, trusted, runs, mean_square)):
-            return (*moved, turn.relocalized, trusted)
-    return None
+    mean without the penalty).
 
-
-def _breaks_cut(turn: BlockTurn, steps: BoolArray | None) -> int:
-    """The ``steps`` (odometry that pays ``BREAK_PENALTY`` when cut) a block ``turn`` cuts."""
-    return 0 if steps is None else int(np.count_nonzero(steps[turn.cut]))
-
-
-def turn_more_blocks(
-    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-    fit: tuple[BoolArray, NoiseModel, FloatArray], known: BoolArray, *, tree: BoolArray,
-    rounds: int, max_threshold: float, initial_threshold: float,
-    closures: BoolArray | None = None, steps: BoolArray | None = None,
-    breakable: BoolArray | None = None,
-) -> tuple[FloatArray, BoolArray, NoiseModel, FloatArray, int, BoolArray] | None:
-    """One round of further block turns, as :func:`turn_blocks` (the same arguments and
-    result), for graphs with many blocks to turn: up to :data:`MORE_TURNS` proposals
-    (:func:`~.relocalize_blocks.block_turns`), each judged alone on the edges that cross
-    its block (the truncated squares at ``GNC_SIGMAS`` noise scales, before a re-fit, plus
-    ``BREAK_PENALTY`` caps for each of the ``steps`` it cuts), the best supported first; those that
-    lower them and touch no block taken before (no shared node, no edge between the two)
-    turn together, then one re-fit and settling as in :func:`turn_blocks`, which stands
-    where it lowers the truncated squares of the whole graph by pieces, the added breaks'
-    penalties included. One re-fit for all: turning 40 blocks one at a time cost City10000
-    40 re-fits of its 10,000 nodes."""
+    ``together``: the rounds after a turn stood (:data:`MORE_TURN_ROUNDS`), for graphs with
+    many blocks to turn: up to :data:`MORE_TURNS` proposals, each judged alone on the edges
+    that cross its block (:func:`_apart`); those that gain there and touch no other turn
+    together, with one re-fit and the same test. Turning 40 blocks one at a time cost
+    City10000 (gtsam's data, 200 wrong odometry steps) 40 re-fits of its 10,000 nodes."""
     inlier, noise, t_fit = fit
     if not math.isfinite(noise.sigma):
         return None
     turns = block_turns(rot, i, j, R, w, _cap(noise, initial_threshold), initial_threshold,
-                        known, closures, breakable=breakable, limit=MORE_TURNS)
-    c = min(GNC_SIGMAS * noise.sigma, initial_threshold)
+                        known, closures, breakable=breakable,
+                        limit=MORE_TURNS if together else MAX_TURNS)
+    runs = closure_runs(i, j, closures & ~known) if turns and closures is not None else []
+    judged = functools.partial(_turned_fit, rot, i, j, R, w, fit, known, tree=tree,
+                               rounds=rounds, max_threshold=max_threshold,
+                               initial_threshold=initial_threshold, runs=runs, steps=steps)
+    if together:
+        apart = _apart(rot, i, j, R, w, min(GNC_SIGMAS * noise.sigma, initial_threshold),
+                       known, turns, steps)
+        return judged(apart) if apart else None
+    for turn in turns:
+        out = judged([turn])
+        if out is not None:
+            return out
+    return None
+
+
+def _turned_fit(
+    rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+    fit: tuple[BoolArray, NoiseModel, FloatArray], known: BoolArray, turns: list[BlockTurn],
+    *, tree: BoolArray, rounds: int, max_threshold: float, initial_threshold: float,
+    runs: list[IntArray], steps: BoolArray | None,
+) -> tuple[FloatArray, BoolArray, NoiseModel, FloatArray, int, BoolArray] | None:
+    """The block ``turns`` applied together to ``rot``, re-fitted by least squares on the
+    inliers without their cuts and with their joins, settled (step 3), as
+    :func:`turn_blocks` returns it, where that lowers the truncated squares by pieces
+    (``runs``) by more than the penalties of the ``steps`` cut; else None."""
+    inlier, noise, t_fit = fit
+    turned, trusted, held = rot.copy(), known.copy(), inlier | known
+    for turn in turns:
+        turned[turn.nodes] = rot[turn.nodes] @ turn.turn
+        trusted[turn.cut] = False  # (a trusted step cut: capped in both fits' squares)
+        held[turn.cut] = False
+    for turn in turns:
+        held[turn.joins] = True
+    turned = refine_least_squares(turned, i, j, R, w * held)
+    moved = _settle(turned, i, j, R, w, held, trusted, tree, rounds, max_threshold,
+                    initial_threshold)
+    sigma = _judged_scale((noise, t_fit, inlier), (moved[2], moved[3], moved[1]))
+    c, mean_square = min(GNC_SIGMAS * sigma, initial_threshold), noise.axes * sigma ** 2
+    penalty = sum(_breaks_cut(turn, steps) for turn in turns)
+    if (squares_by_pieces(moved[0], i, j, R, w, c, trusted, runs, mean_square)
+            + BREAK_PENALTY * penalty * c * c
+            < squares_by_pieces(rot, i, j, R, w, c, trusted, runs, mean_square)):
+        return (*moved, sum(turn.relocalized for turn in turns), trusted)
+    return None
+
+
+def _apart(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
+           c: float, known: BoolArray, turns: list[BlockTurn], steps: BoolArray | None,
+           ) -> list[BlockTurn]:
+    """Of the block ``turns`` (the best supported first), those that lower the truncated
+    squares (threshold ``c``; ``known`` edges uncapped, a trusted cut capped) of the edges
+    that cross their block, before any re-fit, by more than the penalties of the ``steps``
+    they cut, and touch no block taken before them (no shared node, no edge between)."""
     squares = residual_angles(rot, i, j, R) ** 2 * w
     taken = np.zeros(rot.shape[0], bool)  # the chosen blocks' nodes
     touched = np.zeros(rot.shape[0], bool)  # and the nodes their crossing edges reach
@@ -895,27 +905,12 @@ def turn_more_blocks(
             chosen.append(turn)
             taken[turn.nodes] = True
             touched[ends] = True
-    if not chosen:
-        return None
-    turned, trusted, held = rot.copy(), known.copy(), inlier | known
-    for turn in chosen:
-        turned[turn.nodes] = rot[turn.nodes] @ turn.turn
-        trusted[turn.cut] = False
-        held[turn.cut] = False
-    for turn in chosen:
-        held[turn.joins] = True
-    added = sum(_breaks_cut(turn, steps) for turn in chosen)
-    turned = refine_least_squares(turned, i, j, R, w * held)
-    moved = _settle(turned, i, j, R, w, held, trusted, tree, rounds, max_threshold,
-                    initial_threshold)
-    sigma = _judged_scale((noise, t_fit, inlier), (moved[2], moved[3], moved[1]))
-    c, mean_square = min(GNC_SIGMAS * sigma, initial_threshold), noise.axes * sigma ** 2
-    runs = closure_runs(i, j, closures & ~known) if closures is not None else []
-    if (squares_by_pieces(moved[0], i, j, R, w, c, trusted, runs, mean_square)
-            + BREAK_PENALTY * added * c * c
-            < squares_by_pieces(rot, i, j, R, w, c, trusted, runs, mean_square)):
-        return (*moved, sum(turn.relocalized for turn in chosen), trusted)
-    return None
+    return chosen
+
+
+def _breaks_cut(turn: BlockTurn, steps: BoolArray | None) -> int:
+    """The ``steps`` (odometry that pays ``BREAK_PENALTY`` when cut) a block ``turn`` cuts."""
+    return 0 if steps is None else int(np.count_nonzero(steps[turn.cut]))
 
 
 @dataclass(frozen=True)
