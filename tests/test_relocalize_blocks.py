@@ -227,16 +227,17 @@ def test_a_wrong_step_no_break_test_caught_is_cut() -> None:
 
 
 
-def _lost_track_nodes(seed: int = 0) -> dict[str, np.ndarray]:
-    """A 60-keyframe chain (0.5 deg noise), each keyframe closed to those 5, 10 and 15
-    ahead, and three wrong steps into keyframes 12, 30 and 47, each of which ``rot`` places
+def _lost_track_nodes(seed: int = 0, gaps: tuple[int, ...] = (5, 10, 15)
+                      ) -> dict[str, np.ndarray]:
+    """A 60-keyframe chain (0.5 deg noise), each keyframe closed to those ``gaps`` ahead
+    (5, 10 and 15), and three wrong steps into keyframes 12, 30 and 47, each of which ``rot`` places
     by its wrong step (trusted) while the break test left out its true next step: a lost
     track that left single nodes turned, each held by one trusted edge, five to seven true
     ones rejected (City10000 with its wrong hypotheses: 21 such nodes after the first turn)."""
     rng = np.random.default_rng(seed)
     n = 60
     gt = rc.chain_trajectory(n, rng)
-    pairs = [(k, k + 1) for k in range(n - 1)] + [(k, k + d) for d in (5, 10, 15)
+    pairs = [(k, k + 1) for k in range(n - 1)] + [(k, k + d) for d in gaps
                                                   for k in range(n - d)]
     i = np.array([p[0] for p in pairs], np.int64)
     j = np.array([p[1] for p in pairs], np.int64)
@@ -283,6 +284,31 @@ def test_single_nodes_held_by_wrong_steps_turn_together_in_one_round() -> None:
     # block, no turn.
     assert turn_blocks(rot, i, j, R, w, (inlier, noise, t), np.abs(i - j) == 1,
                        together=True, **kwargs) is None
+
+
+def test_a_turn_that_only_moves_a_break_pays_no_penalty() -> None:
+    # Each turned node has its true step (left out) and two closures across: three true
+    # edges against its trusted wrong step. Cutting that step costs a cap and the penalty
+    # (four caps in all), unless the turn only moves the break from the step left out,
+    # which the two closures vouch for on their own.
+    case = _lost_track_nodes(gaps=(5,))
+    i, j, R, rot, known = case["i"], case["j"], case["R"], case["rot"], case["known"]
+    w = np.ones(i.size)
+    odometry = np.abs(i - j) == 1
+    tree = chain_tree(case["gt"].shape[0], i, j, w)
+    inlier = (residual_angles(rot, i, j, R) < math.radians(5.0)) | known
+    noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, math.radians(90.0), tree)
+    kwargs = {"tree": tree, "rounds": 2, "max_threshold": math.radians(90.0),
+              "initial_threshold": math.radians(30.0), "steps": odometry,
+              "breakable": odometry, "together": True}
+    out = turn_blocks(rot, i, j, R, w, (inlier, noise, t), known, closures=~odometry,
+                      **kwargs)
+    assert out is not None and out[4] == 3
+    assert _mean_error(out[0], case["gt"]) < 0.6
+    assert not out[5][case["wrong"]].any()
+    # Without closures to vouch for the turns (none marked as such), each pays the penalty:
+    # no node turns.
+    assert turn_blocks(rot, i, j, R, w, (inlier, noise, t), known, **kwargs) is None
 
 def test_a_turn_is_a_rotation_in_the_blocks_own_frames() -> None:
     # The turn M right-multiplies the block's world-to-node rotations: edges inside the

@@ -817,7 +817,8 @@ def turn_blocks(
     :func:`_breaks_explain_more`: odometry is rarely wrong, and two false edges that happen
     to agree must not cut a true step (a 50-keyframe chain with 7 false closures and two
     wrong steps: a true step cut for a wrong step and a false closure, 2.03 -> 7.83 deg
-    mean without the penalty).
+    mean without the penalty), unless the turn only moves a break: it joins a step left
+    out, and the closures it joins vouch for it on their own (:func:`_breaks_added`).
 
     ``together``: the rounds after a turn stood (:data:`MORE_TURN_ROUNDS`), for graphs with
     many blocks to turn: up to :data:`MORE_TURNS` proposals, each judged alone on the edges
@@ -831,12 +832,15 @@ def turn_blocks(
                         known, closures, breakable=breakable,
                         limit=MORE_TURNS if together else MAX_TURNS)
     runs = closure_runs(i, j, closures & ~known) if turns and closures is not None else []
+    left_out = np.zeros(i.size, bool) if breakable is None else breakable & ~known
+    breaks = functools.partial(_breaks_added, steps=steps, left_out=left_out,
+                               closures=closures, i=i, j=j)
     judged = functools.partial(_turned_fit, rot, i, j, R, w, fit, known, tree=tree,
                                rounds=rounds, max_threshold=max_threshold,
-                               initial_threshold=initial_threshold, runs=runs, steps=steps)
+                               initial_threshold=initial_threshold, runs=runs, breaks=breaks)
     if together:
         apart = _apart(rot, i, j, R, w, min(GNC_SIGMAS * noise.sigma, initial_threshold),
-                       known, turns, steps)
+                       known, turns, breaks)
         return judged(apart) if apart else None
     for turn in turns:
         out = judged([turn])
@@ -849,12 +853,13 @@ def _turned_fit(
     rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
     fit: tuple[BoolArray, NoiseModel, FloatArray], known: BoolArray, turns: list[BlockTurn],
     *, tree: BoolArray, rounds: int, max_threshold: float, initial_threshold: float,
-    runs: list[IntArray], steps: BoolArray | None,
+    runs: list[IntArray], breaks: Callable[[BlockTurn], int],
 ) -> tuple[FloatArray, BoolArray, NoiseModel, FloatArray, int, BoolArray] | None:
     """The block ``turns`` applied together to ``rot``, re-fitted by least squares on the
     inliers without their cuts and with their joins, settled (step 3), as
     :func:`turn_blocks` returns it, where that lowers the truncated squares by pieces
-    (``runs``) by more than the penalties of the ``steps`` cut; else None."""
+    (``runs``) by more than the penalties of the breaks they add (``breaks``, per turn);
+    else None."""
     inlier, noise, t_fit = fit
     turned, trusted, held = rot.copy(), known.copy(), inlier | known
     for turn in turns:
@@ -868,7 +873,7 @@ def _turned_fit(
                     initial_threshold)
     sigma = _judged_scale((noise, t_fit, inlier), (moved[2], moved[3], moved[1]))
     c, mean_square = min(GNC_SIGMAS * sigma, initial_threshold), noise.axes * sigma ** 2
-    penalty = sum(_breaks_cut(turn, steps) for turn in turns)
+    penalty = sum(breaks(turn) for turn in turns)
     if (squares_by_pieces(moved[0], i, j, R, w, c, trusted, runs, mean_square)
             + BREAK_PENALTY * penalty * c * c
             < squares_by_pieces(rot, i, j, R, w, c, trusted, runs, mean_square)):
@@ -877,12 +882,13 @@ def _turned_fit(
 
 
 def _apart(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
-           c: float, known: BoolArray, turns: list[BlockTurn], steps: BoolArray | None,
-           ) -> list[BlockTurn]:
+           c: float, known: BoolArray, turns: list[BlockTurn],
+           breaks: Callable[[BlockTurn], int]) -> list[BlockTurn]:
     """Of the block ``turns`` (the best supported first), those that lower the truncated
     squares (threshold ``c``; ``known`` edges uncapped, a trusted cut capped) of the edges
-    that cross their block, before any re-fit, by more than the penalties of the ``steps``
-    they cut, and touch no block taken before them (no shared node, no edge between)."""
+    that cross their block, before any re-fit, by more than the penalties of the breaks
+    they add (``breaks``), and touch no block taken before them (no shared node, no edge
+    between)."""
     squares = residual_angles(rot, i, j, R) ** 2 * w
     taken = np.zeros(rot.shape[0], bool)  # the chosen blocks' nodes
     touched = np.zeros(rot.shape[0], bool)  # and the nodes their crossing edges reach
@@ -900,7 +906,7 @@ def _apart(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArr
         trusted[turn.cut] = False
         after = residual_angles(turned, i[cross], j[cross], R[cross]) ** 2 * w[cross]
         if (_capped_sum(after, c * c, trusted[cross])
-                + BREAK_PENALTY * _breaks_cut(turn, steps) * c * c
+                + BREAK_PENALTY * breaks(turn) * c * c
                 < _capped_sum(squares[cross], c * c, known[cross])):
             chosen.append(turn)
             taken[turn.nodes] = True
@@ -908,9 +914,26 @@ def _apart(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArr
     return chosen
 
 
-def _breaks_cut(turn: BlockTurn, steps: BoolArray | None) -> int:
-    """The ``steps`` (odometry that pays ``BREAK_PENALTY`` when cut) a block ``turn`` cuts."""
-    return 0 if steps is None else int(np.count_nonzero(steps[turn.cut]))
+def _breaks_added(turn: BlockTurn, *, steps: BoolArray | None, left_out: BoolArray,
+                  closures: BoolArray | None, i: IntArray, j: IntArray) -> int:
+    """Odometry breaks a block ``turn`` adds, each ``BREAK_PENALTY`` caps: the ``steps`` it
+    cuts, less the ``left_out`` steps (odometry no longer trusted) it joins where the
+    ``closures`` it joins are two independent pieces of evidence or more on their own
+    (:func:`~.closure_runs.independent_pieces`). Such a turn moves a break from the step left
+    out to the step it cuts and adds none, the closures vouching for it without the step: a
+    node between a wrong step, trusted, and the true step the break test left out, its
+    closures rejected (City10000's lost tracks). Where they do not, a wrong step left out
+    and a false closure that happen to agree would cut a true step for nothing (the
+    new-user chain with two wrong steps: 2.03 -> 7.83 deg mean)."""
+    cut = 0 if steps is None else int(np.count_nonzero(steps[turn.cut]))
+    moved = int(np.count_nonzero(left_out[turn.joins]))
+    if not cut or not moved or closures is None:
+        return cut
+    joined = np.zeros(i.size, bool)
+    joined[turn.joins[closures[turn.joins]]] = True
+    if independent_pieces(i, j, joined) < 2:
+        return cut
+    return max(0, cut - moved)
 
 
 @dataclass(frozen=True)
