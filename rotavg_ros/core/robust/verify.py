@@ -900,12 +900,15 @@ def _apart(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArr
         ends = np.concatenate([i[cross], j[cross]])
         if touched[turn.nodes].any() or taken[ends].any():
             continue
-        turned = rot.copy()
-        turned[turn.nodes] = rot[turn.nodes] @ turn.turn
-        trusted = known.copy()
-        trusted[turn.cut] = False
-        after = residual_angles(turned, i[cross], j[cross], R[cross]) ** 2 * w[cross]
-        if (_capped_sum(after, c * c, trusted[cross])
+        # The crossing edges' ends only, the block's turned (no copy of every rotation
+        # for each of up to MORE_TURNS proposals).
+        ends_rot = rot[ends]
+        ends_rot[block[ends]] = ends_rot[block[ends]] @ turn.turn
+        k = cross.size
+        after = residual_angles(ends_rot, np.arange(k), np.arange(k, 2 * k),
+                                R[cross]) ** 2 * w[cross]
+        trusted = known[cross] & ~np.isin(cross, turn.cut)  # a trusted cut: capped
+        if (_capped_sum(after, c * c, trusted)
                 + BREAK_PENALTY * breaks(turn) * c * c
                 < _capped_sum(squares[cross], c * c, known[cross])):
             chosen.append(turn)
