@@ -963,6 +963,56 @@ def city10000_case(name: str, data: Path, wrong_hypotheses: bool = False) -> Reg
                       sigma)
 
 
+def city10000_regenerated_case(name: str, data: Path, *, noise_deg: float,
+                               random_false: float = 0.0, groups: int = 0,
+                               seed: int = 0) -> RegimeCase:
+    """Headings regenerated on City10000's real topology against its ground truth (a planar
+    robot: every rotation about z). Each edge measures the true heading difference plus
+    ``N(0, noise_deg)``; ``random_false`` of the loop closures (``|i - j| != 1``) are off by
+    a heading drawn uniformly from ``MIN_FALSE_DEG`` to 180 deg, either sign; ``groups``
+    runs of 5-10 closures are added between two stretches at least 50 ids apart, ``(a + s,
+    b + s)``, all off by one heading of 20-180 deg (a 2D front end's repeated wrong match:
+    perceptual aliasing). The 200 two-hypothesis steps take the true heading difference
+    too. Family ``slam``: every generated false edge is known (the oracle row)."""
+    h = load_city10000(data)
+    n = h.truth.size
+    rng = rng_for(name, seed)
+    i, j = h.i, h.j
+    theta = h.truth[j] - h.truth[i] + np.radians(noise_deg) * rng.standard_normal(i.size)
+    inlier = np.ones(i.size, bool)
+    loop = np.flatnonzero(np.abs(i - j) != 1)
+    false = rng.choice(loop, int(round(random_false * loop.size)), replace=False)
+    theta[false] += (rng.uniform(np.radians(MIN_FALSE_DEG), np.pi, false.size)
+                     * rng.choice([-1.0, 1.0], false.size))
+    inlier[false] = False
+    gi: list[int] = []
+    gj: list[int] = []
+    for _ in range(groups):
+        length = int(rng.integers(5, 11))
+        a, b = 0, 0
+        while b - a <= 50:
+            a, b = sorted(int(x) for x in rng.integers(0, n - length, 2))
+        gi.extend(range(a, a + length))
+        gj.extend(range(b, b + length))
+        theta = np.r_[theta, np.full(length, rng.uniform(np.radians(20.0), np.pi)
+                                     * rng.choice([-1.0, 1.0]))]
+    if groups:
+        gi_, gj_ = np.array(gi, np.int64), np.array(gj, np.int64)
+        theta[i.size:] += (h.truth[gj_] - h.truth[gi_]
+                           + np.radians(noise_deg) * rng.standard_normal(gi_.size))
+        i, j = np.r_[i, gi_], np.r_[j, gj_]
+        inlier = np.r_[inlier, np.zeros(gi_.size, bool)]
+    z = np.array([0.0, 0.0, 1.0])
+    desc = f"City10000's edges and truth, headings at {noise_deg:g} deg"
+    if random_false:
+        desc += f", {random_false:.0%} of loop closures false"
+    if groups:
+        desc += f", {groups} runs ({len(gi)} closures) of grouped false closures"
+    return RegimeCase(name, "slam", n, i, j, rotation_about_axis(z, theta),
+                      rotation_about_axis(z, -h.truth), None, inlier, noise_deg, desc,
+                      max(noise_deg, 1.0))
+
+
 # ------------------------------------------------------------------------ case list
 
 CaseBuilder = Callable[[Path], RegimeCase]

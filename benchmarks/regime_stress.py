@@ -50,6 +50,9 @@ our medians within 1.5x of the oracle's, and every variant that misses one.
 
     python -m benchmarks.regime_stress [--seed 0] [--noise-model folded] [--json out.json]
 
+``--city`` runs five variants on City10000's real topology and truth instead
+(:func:`city_cases`; gtsam's data, the ``bench`` extra).
+
 Needs the shared data (``../shared`` or ``$ROTAVG_SHARED``); exits with a message without it.
 """
 
@@ -64,12 +67,13 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import peers
-from benchmarks.datasets import shared_dir_or_say
+from benchmarks.datasets import find_gtsam_data, shared_dir_or_say
 from benchmarks.regime_cases import (
     NOISE_MODELS,
     RegimeCase,
     broken_odometry_case,
     chain_case,
+    city10000_regenerated_case,
     dense_case,
     grid_walk_case,
     heteroscedastic_case,
@@ -339,6 +343,26 @@ def write_results(path: str, results: list[Result]) -> None:
                                      indent=1))
 
 
+def city_cases(data: Path, seed: int) -> list[Callable[[], RegimeCase]]:
+    """``--city``: five variants on City10000's real topology and ground truth, headings
+    regenerated (:func:`~benchmarks.regime_cases.city10000_regenerated_case`; the noise is
+    about z only, so every noise model draws the same): clean at 5 and 10 deg, 10% random
+    false closures at 2 deg, 20 runs of grouped false closures at 1 deg, and both (20%
+    random, 10 runs) at 3 deg. 10,000 poses each: about two minutes a variant with the
+    peers."""
+    def city(name: str, **extra: Any) -> Callable[[], RegimeCase]:
+        return lambda: city10000_regenerated_case(name, data, seed=seed, **extra)
+
+    return [
+        city("stress/city10000/noise5", noise_deg=5.0),
+        city("stress/city10000/noise10", noise_deg=10.0),
+        city("stress/city10000/noise2+rand10", noise_deg=2.0, random_false=0.10),
+        city("stress/city10000/noise1+grouped20", noise_deg=1.0, groups=20),
+        city("stress/city10000/noise3+rand20+grouped10", noise_deg=3.0, random_false=0.20,
+             groups=10),
+    ]
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -349,6 +373,8 @@ def main() -> int:
     p.add_argument("--cases", help="comma-separated substrings of the variants' names")
     p.add_argument("--summary", metavar="JSON",
                    help="print the summary of a run saved with --json, and run nothing")
+    p.add_argument("--city", action="store_true",
+                   help="run the five City10000 variants instead (needs gtsam's data)")
     args = p.parse_args()
     if args.summary:
         print("\n".join(stress_summary(read_results(args.summary))))
@@ -359,7 +385,15 @@ def main() -> int:
         return 0
     available = peers.available_peers()
     results: list[Result] = []
-    for build in stress_cases(shared, args.seed, args.noise_model):
+    builders = stress_cases(shared, args.seed, args.noise_model)
+    if args.city:
+        data = find_gtsam_data()
+        if data is None:
+            print("regime_stress --city: gtsam's data folder (City10000) not found; install "
+                  "the bench extra (requirements-bench.txt)")
+            return 0
+        builders = city_cases(data, args.seed)
+    for build in builders:
         case = build()
         if not any(part in case.name for part in wanted):
             continue

@@ -3,9 +3,17 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from benchmarks import regime_cases as rc
-from rotavg_ros.core.robust.closure_runs import closure_runs, run_pull, suspect_runs
+from rotavg_ros.core.robust import closure_runs as closure_runs_module
+from rotavg_ros.core.robust.closure_runs import (
+    REMEMBERED_RUN_LEVERAGES,
+    closure_runs,
+    remembered_run_leverages,
+    run_pull,
+    suspect_runs,
+)
 from rotavg_ros.core.robust.gauss_newton import refine_least_squares
 from rotavg_ros.core.so3 import exp_map
 
@@ -77,3 +85,44 @@ def test_a_run_that_bent_the_fit_is_the_most_suspect_and_the_rest_is_not() -> No
     # Without it the rest is consistent: nothing is suspect.
     rest = refine_least_squares(fit, case.i, case.j, case.R, w * ~false, iterations=20)
     assert suspect_runs(rest, case.i, case.j, case.R, w, ~false, closures, SIGMA) == []
+
+
+def test_remembered_leverages_follow_the_fit_exactly_with_few_solves(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Within ``remembered_run_leverages`` the runs' leverages of a fit that differs from the
+    last by a few edges come from the Woodbury update, not from a solve per run: the same
+    ``T_S`` as without (to rounding), and only new runs solved for directly."""
+    case, false = chain_with_runs(40.0, true_runs=12)
+    closures = ~case.odometry
+    solved: list[int] = []
+    direct = closure_runs_module._leverages
+
+    def counting(laplacian, row, i, j, w, runs):  # type: ignore[no-untyped-def]
+        solved.append(len(runs))
+        return direct(laplacian, row, i, j, w, runs)
+
+    monkeypatch.setattr(closure_runs_module, "_leverages", counting)
+    fits = [~false, ~false, ~false & (np.arange(case.num_edges) != 405),  # one lone closure out
+            ~false & ~np.isin(np.arange(case.num_edges), [405, 420]),  # a run loses one
+            ~false,  # that run whole again
+            np.ones(case.num_edges, bool)]  # the false run in: a new run
+    expected, got = [], []
+    for fit in fits:
+        w = fit.astype(float)
+        rot = refine_least_squares(case.gt, case.i, case.j, case.R, w, iterations=5)
+        runs = closure_runs(case.i, case.j, closures & fit)
+        expected.append(run_pull(rot, case.i, case.j, case.R, w, runs))
+    solved.clear()
+    with remembered_run_leverages():
+        for fit in fits:
+            w = fit.astype(float)
+            rot = refine_least_squares(case.gt, case.i, case.j, case.R, w, iterations=5)
+            runs = closure_runs(case.i, case.j, closures & fit)
+            got.append(run_pull(rot, case.i, case.j, case.R, w, runs))
+    for e, g in zip(expected, got, strict=True):
+        assert np.allclose(e, g, rtol=1e-9, atol=0.0, equal_nan=True)
+    counts = [closure_runs(case.i, case.j, closures & fit) for fit in fits]
+    # All runs solved at first; then none (the same fit, one lone closure out), the run
+    # that lost a closure (a new run), that run whole again, and the false run.
+    assert solved == [len(counts[0]), 1, 1, 1]
+    assert REMEMBERED_RUN_LEVERAGES.get() is None

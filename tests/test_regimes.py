@@ -262,6 +262,42 @@ def test_city10000_case_reads_headings_and_picks_each_hypothesis_by_the_truth(
     monkeypatch.setattr(rc, "find_gtsam_data", lambda: None)
     assert not any("city10000" in name for name in rc.all_cases())
 
+def test_city10000_regenerated_case_keeps_the_topology_and_draws_false_closures(
+        tmp_path: Path) -> None:
+    """A 120-pose file in City10000's format, headings regenerated without noise: every
+    true edge is exactly the truth's turn, the random false closures (never odometry) are
+    at least ``MIN_FALSE_DEG`` off, each run of grouped closures joins two stretches 50
+    ids apart or more, all its closures off by one turn of 20 deg or more; the same seed
+    draws the same case."""
+    rng = np.random.default_rng(3)
+    truth = np.cumsum(rng.normal(0.0, 0.1, 120))
+    pairs = [(k, k + 1) for k in range(119)] + [(k, k + 60) for k in range(40)]
+    (tmp_path / "T1_city10000_04.txt").write_text("".join(
+        f"EDGE2 {a} 1 {b} 0 1 1.0 0.0 {truth[b] - truth[a]}\n" for a, b in pairs))
+    (tmp_path / "ISAM2_GT_city10000.txt").write_text(
+        "\n".join(f"{k} 0 {t}" for k, t in enumerate(truth)) + "\n")
+    case = rc.city10000_regenerated_case("test/city", tmp_path, noise_deg=0.0,
+                                         random_false=0.25, groups=2)
+    assert case.family == "slam" and case.inlier is not None and case.num_nodes == 120
+    off = _angles_deg(case.R, rc.relative(case.gt, case.i, case.j))
+    assert off[case.inlier].max() < 1e-6
+    random_false = ~case.inlier[:len(pairs)]
+    assert random_false.sum() == 10 and not random_false[:119].any()
+    assert off[:len(pairs)][random_false].min() >= rc.MIN_FALSE_DEG
+    gi, gj = case.i[len(pairs):], case.j[len(pairs):]
+    assert not case.inlier[len(pairs):].any() and 10 <= gi.size <= 20
+    starts = np.flatnonzero(np.r_[True, np.diff(gi) != 1])
+    assert starts.size == 2  # two runs (k, k + gap), each of consecutive ids
+    for lo, hi in zip(starts, np.r_[starts[1:], gi.size], strict=True):
+        assert 5 <= hi - lo <= 10 and np.all(np.diff(gj[lo:hi]) == 1)
+        assert np.all(gj[lo:hi] - gi[lo:hi] > 50)
+        turns = off[len(pairs) + lo:len(pairs) + hi]
+        assert turns.min() >= 20.0 and np.ptp(turns) < 1e-6
+    again = rc.city10000_regenerated_case("test/city", tmp_path, noise_deg=0.0,
+                                          random_false=0.25, groups=2)
+    assert np.array_equal(again.R, case.R) and np.array_equal(again.i, case.i)
+
+
 def test_car_trajectory_drives_straight_and_turns_sharply() -> None:
     """Most steps small (straight runs), about one in ten at least 10 deg (the turns), none
     much above 90 deg; rotations proper; pitch and roll small; the same draw twice; the chain and

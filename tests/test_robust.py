@@ -31,6 +31,7 @@ from rotavg_ros.core.robust.l1_choice import (
     HUBER_K,
     L1,
     LEAST_SQUARES,
+    MIN_SCALE,
     choose_by_cross_validation,
     decided_early,
     fold_plan,
@@ -965,6 +966,23 @@ def test_l1_fit_weighs_each_residual_by_its_own_noise_scale() -> None:
     # Unit weights scaled by a constant: the same fit (only the floor's units change).
     same = l1_fit(ls, i, j, R, np.full(i.size, 4.0), 2.0 * eps)
     np.testing.assert_allclose(same, l1_fit(ls, i, j, R, np.ones(i.size), eps), atol=1e-9)
+
+
+def test_irls_fits_of_noise_free_edges_stay_finite() -> None:
+    """Noise-free edges: the least-squares median residual is rounding error, and a floor
+    or threshold of it (here 0) made the IRLS weights infinite or singular to rounding (a
+    three-node graph's Cholesky failed on one CPU). Both fits floor it at ``MIN_SCALE``
+    and return the truth."""
+    truth = np.tile(np.eye(3), (4, 1, 1))  # every residual exactly 0
+    i, j = np.array([0, 0, 1, 1, 2, 0]), np.array([1, 1, 2, 2, 3, 3])
+    R = np.einsum("eab,ecb->eac", truth[i], truth[j])
+    w = np.array([1.0, 2.0, 1.0, 3.0, 1.0, 1.0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fits = [l1_fit(truth, i, j, R, w, 0.0), huber_fit(truth, i, j, R, w, 0.0)]
+    for fit in fits:
+        assert np.all(np.isfinite(fit))
+        assert np.max(residual_angles(fit, i, j, R)) < 1e-9
+    assert 0.0 < MIN_SCALE < 1e-4  # far below any measurement's noise
 
 
 def test_early_stop_quantiles_are_students_t_at_99_5_percent() -> None:

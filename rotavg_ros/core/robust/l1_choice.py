@@ -65,6 +65,12 @@ folds; on sphere2500's graphs it comes after 3-8 folds (3 on the real one)."""
 L1_FLOOR = 0.3
 """``eps`` of the L1 reweighting, as a fraction of the least-squares median standardized
 residual ``sqrt(w_e) |e_e|``."""
+MIN_SCALE = 1e-6
+"""Floor (radians of standardized residual) under the L1 fit's ``eps`` and the Huber fit's
+threshold. On noise-free data the least-squares median residual is rounding error, and
+IRLS weights of ``1 / eps``, 1e15 and more, leave the Laplacian singular to rounding: a
+three-node test graph's Cholesky failed on one CPU and passed on another. Measurement noise
+is orders of magnitude above it."""
 L1_STEPS = 20
 """Reweightings (one Gauss-Newton step each) of every L1 fit."""
 HUBER_STEPS = 10
@@ -143,9 +149,10 @@ def l1_floor(r: FloatArray, w: FloatArray) -> float:
 
 def l1_fit(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
            eps: float, steps: int = L1_STEPS) -> FloatArray:
-    """IRLS from ``rot`` towards ``min sum_e sqrt(w_e) |e_e|`` (floor ``eps`` on the
-    standardized residual ``sqrt(w_e) |e_e|``)."""
+    """IRLS from ``rot`` towards ``min sum_e sqrt(w_e) |e_e|`` (floor ``eps``, at least
+    :data:`MIN_SCALE`, on the standardized residual ``sqrt(w_e) |e_e|``)."""
     sqrt_w = np.sqrt(w)
+    eps = max(eps, MIN_SCALE)
     for _ in range(steps):
         e = edge_residuals(rot, i, j, R)
         s = np.maximum(sqrt_w * np.linalg.norm(e, axis=1), eps)
@@ -156,9 +163,10 @@ def l1_fit(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArr
 def huber_fit(rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
               k: float, steps: int = HUBER_STEPS) -> FloatArray:
     """IRLS from ``rot`` towards Huber's estimator ``min sum_e rho_k(sqrt(w_e) |e_e|)``
-    (quadratic up to the standardized residual ``k``, linear beyond): weights
-    ``w_e min(1, k / (sqrt(w_e) |e_e|))``."""
+    (quadratic up to the standardized residual ``k``, at least :data:`MIN_SCALE`, linear
+    beyond): weights ``w_e min(1, k / (sqrt(w_e) |e_e|))``."""
     sqrt_w = np.sqrt(w)
+    k = max(k, MIN_SCALE)
     for _ in range(steps):
         e = edge_residuals(rot, i, j, R)
         s = np.maximum(sqrt_w * np.linalg.norm(e, axis=1), k)

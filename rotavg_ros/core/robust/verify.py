@@ -93,7 +93,12 @@ from rotavg_ros.core.robust.closure_consistency import (
     consistent_closures,
     loop_noise_scale_and_bound,
 )
-from rotavg_ros.core.robust.closure_runs import closure_runs, independent_pieces, suspect_runs
+from rotavg_ros.core.robust.closure_runs import (
+    closure_runs,
+    independent_pieces,
+    remembered_run_leverages,
+    suspect_runs,
+)
 from rotavg_ros.core.robust.gauss_newton import (
     ITERATIVE_MIN_DEGREE,
     WELL_CONNECTED,
@@ -508,15 +513,17 @@ def _linear_solves_set_for_the_graph(
     """Run ``solve(num_nodes, i, j, ...)`` with the Laplacian solves set up for the input
     graph: :data:`~.gauss_newton.WELL_CONNECTED` set when it has at least
     ``ITERATIVE_MIN_DEGREE`` edges per node (an SfM view graph: every large normal matrix
-    is then solved by conjugate gradients first), and one shared fill-reducing order of its
-    nodes for the sparse factorizations (:func:`~.gauss_newton.shared_elimination_order`)."""
+    is then solved by conjugate gradients first), one shared fill-reducing order of its
+    nodes for the sparse factorizations (:func:`~.gauss_newton.shared_elimination_order`),
+    and the closure runs' leverages kept from fit to fit
+    (:func:`~.closure_runs.remembered_run_leverages`)."""
 
     @functools.wraps(solve)
     def run(num_nodes: int, i: IntArray, j: IntArray, *args: P.args,
             **kwargs: P.kwargs) -> T:
         token = WELL_CONNECTED.set(2.0 * i.size / max(num_nodes, 1) >= ITERATIVE_MIN_DEGREE)
         try:
-            with shared_elimination_order(num_nodes, i, j):
+            with shared_elimination_order(num_nodes, i, j), remembered_run_leverages():
                 return solve(num_nodes, i, j, *args, **kwargs)
         finally:
             WELL_CONNECTED.reset(token)
