@@ -187,10 +187,12 @@ class RunLeverages:
     changed, ``C``: the changes), Woodbury's identity for ``L0 = L1 - U C U^T`` gives
     ``h1 = h0 + g^T N^-1 g`` with ``g = V^T y_S``, ``V = L1^-1 U`` and ``N = U^T V -
     C^-1``: one solve with the new fit's factor, a column per changed edge. A run that is
-    new, or whose edges' weights changed, is solved for as before."""
+    new, or whose edges' weights changed, is solved for as before, and so is every run
+    where the graph's edges or the Laplacian's free nodes are not the last fit's."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
+        self._edges: tuple[IntArray, IntArray] | None = None
         self._weights: FloatArray | None = None
         self._nodes: IntArray | None = None
         self._known: dict[bytes, float] = {}
@@ -203,10 +205,11 @@ class RunLeverages:
                   w: FloatArray, runs: list[IntArray]) -> FloatArray:
         """``h_S`` per run for the fit with weights ``w`` (``laplacian``: its factor)."""
         with self._lock:
-            before, nodes, known = self._weights, self._nodes, self._known
+            edges, before, nodes, known = self._edges, self._weights, self._nodes, self._known
         keys = [self._key(r, w) for r in runs]
         h = np.full(len(runs), np.nan)
-        if (before is not None and nodes is not None and before.shape == w.shape
+        if (edges is not None and before is not None and nodes is not None
+                and np.array_equal(edges[0], i) and np.array_equal(edges[1], j)
                 and np.array_equal(nodes, laplacian.nodes)):
             kept = np.array([k for k, key in enumerate(keys) if key in known], np.int64)
             if kept.size:
@@ -219,7 +222,8 @@ class RunLeverages:
         if todo.size:
             h[todo] = _leverages(laplacian, row, i, j, w, [runs[k] for k in todo])
         with self._lock:
-            self._weights, self._nodes = w.copy(), laplacian.nodes.copy()
+            self._edges, self._weights = (i.copy(), j.copy()), w.copy()
+            self._nodes = laplacian.nodes.copy()
             self._known = dict(zip(keys, h.tolist(), strict=True))
         return h
 
