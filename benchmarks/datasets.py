@@ -79,6 +79,11 @@ def find_gtsam_data() -> Path | None:
     return next((Path(loc) / "Data" for loc in spec.submodule_search_locations
                  if (Path(loc) / "Data").is_dir()), None)
 
+MANHATTAN_FILE = "w10000.graph"
+"""gtsam's copy of Olson's Manhattan world: a simulated planar robot on a city grid, 10,000
+poses, 9,999 odometry steps and 54,312 loop closures (``EDGE2 i j x y theta`` and the
+information matrix), ``VERTEX2`` rows of its initial estimate; no ground truth."""
+
 
 @dataclass
 class PlanarHeadings:
@@ -114,3 +119,27 @@ def load_city10000(data: Path) -> PlanarHeadings:
     truth = np.loadtxt(data / CITY10000_FILES[1], ndmin=2)[:, 2]
     return PlanarHeadings(np.array(i, np.int64), np.array(j, np.int64), np.array(measured),
                           np.array(alternative), truth)
+
+
+def load_manhattan(data: Path) -> PlanarHeadings:
+    """The Manhattan world from gtsam's data folder (:data:`MANHATTAN_FILE`): its 64,311
+    edges (every ``EDGE2 i j x y theta ...`` row; the ``EQUIV`` rows are left out) and, as
+    ``truth``, the headings of its ``VERTEX2`` rows. The file carries no ground truth: those
+    are its initial estimate, a plausible trajectory on the same topology (turns of about
+    90 deg at the corners), which the regenerated cases take as their truth."""
+    vertices: dict[int, float] = {}
+    i, j, measured = [], [], []
+    with open(data / MANHATTAN_FILE, encoding="ascii") as f:
+        for line in f:
+            field = line.split()
+            if field and field[0] == "VERTEX2":
+                vertices[int(field[1])] = float(field[4])
+            elif field and field[0] == "EDGE2":
+                i.append(int(field[1]))
+                j.append(int(field[2]))
+                measured.append(float(field[5]))
+    if sorted(vertices) != list(range(len(vertices))):
+        raise ValueError("Manhattan world: vertex ids are not 0 .. N-1")
+    truth = np.array([vertices[k] for k in range(len(vertices))])
+    return PlanarHeadings(np.array(i, np.int64), np.array(j, np.int64), np.array(measured),
+                          np.full(len(i), np.nan), truth)

@@ -41,9 +41,11 @@ from numpy.typing import NDArray
 from scipy.sparse import csr_matrix
 
 from benchmarks.datasets import (
+    PlanarHeadings,
     find_gtsam_data,
     load_city10000,
     load_ellis_island,
+    load_manhattan,
     load_se_sync,
 )
 from rotavg_ros.core.so3 import (
@@ -966,15 +968,37 @@ def city10000_case(name: str, data: Path, wrong_hypotheses: bool = False) -> Reg
 def city10000_regenerated_case(name: str, data: Path, *, noise_deg: float,
                                random_false: float = 0.0, groups: int = 0,
                                seed: int = 0) -> RegimeCase:
-    """Headings regenerated on City10000's real topology against its ground truth (a planar
-    robot: every rotation about z). Each edge measures the true heading difference plus
-    ``N(0, noise_deg)``; ``random_false`` of the loop closures (``|i - j| != 1``) are off by
-    a heading drawn uniformly from ``MIN_FALSE_DEG`` to 180 deg, either sign; ``groups``
-    runs of 5-10 closures are added between two stretches at least 50 ids apart, ``(a + s,
-    b + s)``, all off by one heading of 20-180 deg (a 2D front end's repeated wrong match:
-    perceptual aliasing). The 200 two-hypothesis steps take the true heading difference
-    too. Family ``slam``: every generated false edge is known (the oracle row)."""
-    h = load_city10000(data)
+    """Headings regenerated on City10000's real topology against its ground truth
+    (:func:`planar_topology_case`). The 200 two-hypothesis steps take the true heading
+    difference too."""
+    return planar_topology_case(name, load_city10000(data), "City10000's edges and truth",
+                                noise_deg=noise_deg, random_false=random_false,
+                                groups=groups, seed=seed)
+
+
+def manhattan_regenerated_case(name: str, data: Path, *, noise_deg: float,
+                               random_false: float = 0.0, groups: int = 0,
+                               seed: int = 0) -> RegimeCase:
+    """Headings regenerated on the Manhattan world's real topology
+    (:func:`~benchmarks.datasets.load_manhattan`: 10,000 poses, 54,312 loop closures, mean
+    degree 12.9), its file's headings taken as the truth (:func:`planar_topology_case`)."""
+    return planar_topology_case(name, load_manhattan(data),
+                                "the Manhattan world's edges, its headings as truth",
+                                noise_deg=noise_deg, random_false=random_false,
+                                groups=groups, seed=seed)
+
+
+def planar_topology_case(name: str, h: PlanarHeadings, what: str, *, noise_deg: float,
+                         random_false: float = 0.0, groups: int = 0,
+                         seed: int = 0) -> RegimeCase:
+    """Headings regenerated on a real planar graph's edges ``h.i, h.j`` against the headings
+    ``h.truth`` (a planar robot: every rotation about z). Each edge measures the true heading
+    difference plus ``N(0, noise_deg)``; ``random_false`` of the loop closures (``|i - j| !=
+    1``) are off by a heading drawn uniformly from ``MIN_FALSE_DEG`` to 180 deg, either sign;
+    ``groups`` runs of 5-10 closures are added between two stretches at least 50 ids apart,
+    ``(a + s, b + s)``, all off by one heading of 20-180 deg (a 2D front end's repeated wrong
+    match: perceptual aliasing). Family ``slam``: every generated false edge is known (the
+    oracle row)."""
     n = h.truth.size
     rng = rng_for(name, seed)
     i, j = h.i, h.j
@@ -1003,7 +1027,7 @@ def city10000_regenerated_case(name: str, data: Path, *, noise_deg: float,
         i, j = np.r_[i, gi_], np.r_[j, gj_]
         inlier = np.r_[inlier, np.zeros(gi_.size, bool)]
     z = np.array([0.0, 0.0, 1.0])
-    desc = f"City10000's edges and truth, headings at {noise_deg:g} deg"
+    desc = f"{what}, headings at {noise_deg:g} deg"
     if random_false:
         desc += f", {random_false:.0%} of loop closures false"
     if groups:

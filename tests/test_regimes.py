@@ -298,6 +298,32 @@ def test_city10000_regenerated_case_keeps_the_topology_and_draws_false_closures(
     assert np.array_equal(again.R, case.R) and np.array_equal(again.i, case.i)
 
 
+def test_manhattan_regenerated_case_reads_the_file_and_keeps_its_topology(
+        tmp_path: Path) -> None:
+    """A 40-pose file in the Manhattan world's format (``VERTEX2`` rows, ``EDGE2 i j x y
+    theta`` and an information matrix, ``EQUIV`` rows): the vertices' headings are the
+    truth, every ``EDGE2`` row an edge in the file's direction, ``EQUIV`` rows none; headings
+    regenerated without noise fit the truth exactly; vertex ids with a gap are refused."""
+    rng = np.random.default_rng(4)
+    truth = np.cumsum(rng.normal(0.0, 0.5, 40))
+    pairs = [(k + 1, k) for k in range(39)] + [(k + 20, k) for k in range(15)]
+    text = "".join(f"VERTEX2 {k} {k} 0 {t}\n" for k, t in enumerate(truth))
+    text += "".join(f"EDGE2 {a} {b} 1 0 0.3 1 0 1 1 0 0\n" for a, b in pairs)
+    (tmp_path / "w10000.graph").write_text(text + "EQUIV 21 1\n")
+    case = rc.manhattan_regenerated_case("test/manhattan", tmp_path, noise_deg=0.0,
+                                         random_false=0.2)
+    assert case.num_nodes == 40 and case.num_edges == len(pairs)
+    assert case.inlier is not None
+    assert list(zip(case.i.tolist(), case.j.tolist(), strict=True)) == pairs
+    assert np.allclose(case.gt[:, 2, 2], 1.0)
+    off = _angles_deg(case.R, rc.relative(case.gt, case.i, case.j))
+    assert off[case.inlier].max() < 1e-6 and (~case.inlier).sum() == 3
+    assert not (~case.inlier[:39]).any()  # odometry never false
+    (tmp_path / "w10000.graph").write_text(text.replace("VERTEX2 7 ", "VERTEX2 70 "))
+    with pytest.raises(ValueError, match="vertex ids"):
+        rc.manhattan_regenerated_case("test/manhattan", tmp_path, noise_deg=0.0)
+
+
 def test_car_trajectory_drives_straight_and_turns_sharply() -> None:
     """Most steps small (straight runs), about one in ten at least 10 deg (the turns), none
     much above 90 deg; rotations proper; pitch and roll small; the same draw twice; the chain and

@@ -22,6 +22,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     jacobi_pcg,
     prediction_variance,
     refine_least_squares,
+    remembered_cg_failures,
     residual_angles,
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
@@ -349,6 +350,43 @@ def test_laplacian_solvers_agree(monkeypatch: pytest.MonkeyPatch) -> None:
         assert not Factor(L, nodes).sparse
     finally:
         gauss_newton.WELL_CONNECTED.reset(token)
+
+
+def test_a_cg_failure_sends_the_graphs_later_laplacians_to_the_factorization(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Within :func:`remembered_cg_failures`, CG that failed on more of the graph's
+    Laplacians than it converged on is not tried again on the next ones (a long, often
+    revisited trajectory: ill conditioned though many edges per node); another graph's
+    route is its own, and a route set around the block (the solver's) stands inside a
+    nested one."""
+    rng = np.random.default_rng(5)
+    n = 360
+    ii, jj = np.triu_indices(n, 1)
+    keep = rng.random(ii.size) < 0.07
+    i, j = ii[keep], jj[keep]
+    L, nodes = anchored_laplacian(n, i, j, 0.5 + rng.random(i.size))
+    b = rng.normal(size=(nodes.size, 2))
+    reference = np.linalg.solve(L.toarray(), b)
+    monkeypatch.setattr(gauss_newton, "DENSE_MAX", 10)  # as if the graph were large
+    monkeypatch.setattr(gauss_newton, "PCG_MAX_ITERATIONS", 2)  # CG gives up
+    with remembered_cg_failures(n):
+        first = Factor(L, nodes, n)
+        assert not first.sparse  # CG is tried first ...
+        np.testing.assert_allclose(first.solve(b), reference, rtol=1e-8, atol=1e-10)
+        assert first.sparse  # ... and failed
+        with remembered_cg_failures(n):  # a nested block keeps the outer route
+            later = Factor(L, nodes, n)
+        assert later.sparse  # factored at once
+        np.testing.assert_allclose(later.solve(b), reference, rtol=1e-8, atol=1e-10)
+        assert not Factor(L, nodes, n + 1).sparse  # another graph: CG first
+        assert not Factor(L, nodes).sparse  # no graph named: CG first
+    assert not Factor(L, nodes, n).sparse  # outside the block nothing is remembered
+    with remembered_cg_failures(n):  # where CG converged as often as it failed: kept
+        monkeypatch.setattr(gauss_newton, "PCG_MAX_ITERATIONS", 300)
+        Factor(L, nodes, n).solve(b)
+        monkeypatch.setattr(gauss_newton, "PCG_MAX_ITERATIONS", 2)
+        Factor(L, nodes, n).solve(b)
+        assert not Factor(L, nodes, n).sparse
 
 
 def test_noise_fit_recovers_scale_and_outlier_fraction() -> None:
@@ -740,13 +778,21 @@ def test_robust_resolve_gives_the_same_bits_on_two_threads() -> None:
 
 def test_odometry_rule() -> None:
     i, j, _, _, _ = _chain(100, 10, 0.0, seed=1)
-    assert np.array_equal(odometry_edges(100, i, j, "auto", 10.0), np.abs(i - j) == 1)
-    assert not odometry_edges(100, i, j, "none", 10.0).any()
+    assert np.array_equal(odometry_edges(100, i, j, "auto"), np.abs(i - j) == 1)
+    assert not odometry_edges(100, i, j, "none").any()
     a, b = np.triu_indices(30, 1)  # every pair: an SfM view graph, not a pose graph
-    assert not odometry_edges(30, a, b, "auto", 10.0).any()
-    assert odometry_edges(30, a, b, "consecutive", 10.0).sum() == 29
+    assert not odometry_edges(30, a, b, "auto").any()
+    assert odometry_edges(30, a, b, "consecutive").sum() == 29
+    # A trajectory revisited often: mean degree 14, far above sparse mode's 10, but 3.5%
+    # of its node pairs joined: its odometry is trusted.
+    rng = np.random.default_rng(2)
+    first, second = rng.integers(0, 400, (2, 2400))
+    far = np.abs(first - second) > 1
+    ti, tj = np.r_[np.arange(399), first[far]], np.r_[np.arange(1, 400), second[far]]
+    assert 2.0 * ti.size / 400 > 13.0
+    assert np.array_equal(odometry_edges(400, ti, tj, "auto"), np.abs(ti - tj) == 1)
     with pytest.raises(ValueError):
-        odometry_edges(30, a, b, "odom", 10.0)
+        odometry_edges(30, a, b, "odom")
 
 
 def test_relocalize_moves_back_a_node_its_edges_disagree_with() -> None:

@@ -123,8 +123,8 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         "natural order, kf_9 before kf_10, where that chains more frames than the order "
         "they were first seen, else that order; for ids with no order, the graph's own "
         "paths of frames with two edges; e.g. consecutive keyframes), none, or auto "
-        "(consecutive when they chain at least 90% of the frames of a sparse graph; an SfM "
-        "view graph: none).",
+        "(consecutive when they chain at least 90% of the frames of a graph that joins at "
+        "most half its frame pairs; a near-complete SfM view graph: none).",
         choices=("auto", "consecutive", "none")),
     ParameterSpec(
         "class_noise", _SOLVER.verify.class_noise,

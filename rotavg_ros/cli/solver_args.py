@@ -24,8 +24,8 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    "consecutive (nodes adjacent in their ids' natural order, kf_9 before "
                    "kf_10, where that chains more nodes than the order first named, else "
                    "that order; for ids with no order, the graph's own paths of nodes with "
-                   "two edges), none, or auto "
-                   "(consecutive when they chain >= 90%% of the nodes of a sparse graph) "
+                   "two edges), none, or auto (consecutive when they chain >= 90%% of the "
+                   "nodes of a graph that joins at most half its node pairs) "
                    "(default %(default)s)")
     g.add_argument("--no-class-noise", action="store_true",
                    help="keep the weights as given: by default, where they do not tell the "

@@ -372,8 +372,9 @@ class VerifyOptions:
     their digits read as numbers, where that chains more nodes than the order they were
     first added, else that order; where neither chains 90% of the nodes, the graph's own
     paths of nodes of degree at most two; :mod:`~rotavg_ros.core.node_sequence`), ``none``, or
-    ``auto`` (consecutive, when they chain at least 90% of the nodes of a graph sparse
-    enough for sparse mode; else none). A SLAM front end's
+    ``auto`` (consecutive, when they chain at least 90% of the nodes of a graph that joins
+    at most half its node pairs: a trajectory, however often revisited, not a near-complete
+    view graph whose ids chain by accident; else none). A SLAM front end's
     odometry is rarely wrong, and a group of consistent false closures can outvote the few
     edges that cross a weakly connected part of the graph, unless those edges are trusted.
     Rarely is not never: a step that is a jump (far above the usual step) where the loop

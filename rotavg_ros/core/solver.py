@@ -26,7 +26,7 @@ from rotavg_ros.core.node_sequence import node_sequence
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.class_noise import class_noise
-from rotavg_ros.core.robust.gauss_newton import refine_least_squares
+from rotavg_ros.core.robust.gauss_newton import refine_least_squares, remembered_cg_failures
 from rotavg_ros.core.robust.l1_choice import (
     LEAST_SQUARES,
     choose_by_cross_validation,
@@ -255,7 +255,9 @@ class RotationAverager:
                   >= self.options.verify.least_squares_below_redundancy)
         token = NOISE_AXES.set(1 if planar else 3)
         try:
-            with reused_relaxations():  # (the same edges relaxed twice: solved once)
+            # (the same edges relaxed twice: solved once; CG's failure on one of the
+            # graph's Laplacians remembered for the whole solve)
+            with reused_relaxations(), remembered_cg_failures(n):
                 return self._solve_component(n, i, j, R, w, initial, initial_depth)
         finally:
             NOISE_AXES.reset(token)
@@ -266,7 +268,7 @@ class RotationAverager:
     ) -> ComponentSolution:
         """:meth:`solve_component` within its noise model's axes."""
         opt = self.options
-        odometry = odometry_edges(n, i, j, opt.verify.odometry, opt.sparse.mean_degree)
+        odometry = odometry_edges(n, i, j, opt.verify.odometry)
         bias = None
         # Only on an odometry chain with sparse loop closures (the redundancy of all its
         # edges below ``least_squares_below_redundancy``): there the odometry carries the

@@ -163,6 +163,55 @@ ELIMINATION_ORDER: ContextVar[EliminationOrder | None] = ContextVar(
 """The current graph's :class:`EliminationOrder` (see :func:`shared_elimination_order`)."""
 
 
+class ConjugateGradientRoute:
+    """Whether the large Laplacians of one graph (``num_nodes`` nodes, at any weights) are
+    still solved by conjugate gradients first (:data:`WELL_CONNECTED`,
+    ``ITERATIVE_MIN_DEGREE``): not once CG has failed on more of them than it converged
+    on. Many edges per node do not make a graph well conditioned: a long trajectory
+    revisited often (the Manhattan world's 10,000 poses at mean degree 12.9) has
+    Laplacians on which Jacobi CG does not converge in ``PCG_MAX_ITERATIONS`` (3 s for 64
+    columns), while their factors are sparse (31 entries a column, 26 ms). Set it with
+    :func:`remembered_cg_failures`."""
+
+    def __init__(self, num_nodes: int) -> None:
+        self.num_nodes = num_nodes
+        self.converged = 0
+        """Laplacians of the graph on which CG converged."""
+        self.not_converged = 0
+        """... and on which it did not (then factored after all)."""
+
+    @property
+    def failed(self) -> bool:
+        """Whether CG failed more often than it converged on the graph's Laplacians: then it
+        is no longer tried (a view graph whose CG converges but for a rare ill-conditioned
+        weighting keeps it). (Plain counters: the verification's threads only add to
+        them, and a count lost to a race changes which solver runs, never a result's
+        accuracy.)"""
+        return self.not_converged > self.converged
+
+
+CG_ROUTE: ContextVar[ConjugateGradientRoute | None] = ContextVar("CG_ROUTE", default=None)
+"""The current graph's :class:`ConjugateGradientRoute` (see :func:`remembered_cg_failures`)."""
+
+
+@contextmanager
+def remembered_cg_failures(num_nodes: int) -> Iterator[None]:
+    """Within this block, CG's failures on the Laplacians of a graph on ``num_nodes`` nodes
+    (:class:`Factor` given ``num_nodes``), once more than its successes, send every later
+    one straight to the sparse factorization. Where a route for that graph is set already
+    (the solver's, around the verification's own), that one stands: the counts hold for
+    the whole solve."""
+    current = CG_ROUTE.get()
+    if current is not None and current.num_nodes == num_nodes:
+        yield
+        return
+    token = CG_ROUTE.set(ConjugateGradientRoute(num_nodes))
+    try:
+        yield
+    finally:
+        CG_ROUTE.reset(token)
+
+
 @contextmanager
 def shared_elimination_order(num_nodes: int, i: IntArray, j: IntArray) -> Iterator[None]:
     """Within this block, every sparse factorization of a Laplacian on ``num_nodes`` nodes
@@ -211,9 +260,12 @@ class Factor:
         self._lu = None
         self._matrix: Any = None  # conjugate gradients on this matrix
         size = nodes.size
+        route = CG_ROUTE.get()
+        self._route = route if route is not None and route.num_nodes == num_nodes else None
         if _factor_densely(size, L.nnz):
             self._dense = cho_factor(L.toarray(), lower=True, check_finite=False)
-        elif WELL_CONNECTED.get() or L.nnz / size - 1.0 >= ITERATIVE_MIN_DEGREE:
+        elif ((WELL_CONNECTED.get() or L.nnz / size - 1.0 >= ITERATIVE_MIN_DEGREE)
+              and not (self._route is not None and self._route.failed)):
             self._matrix = L
             self._inverse_diagonal = 1.0 / L.diagonal()
         else:
@@ -238,6 +290,7 @@ class Factor:
         factor._perm = None
         factor._lu = None
         factor._matrix = None
+        factor._route = None
         factor._dense = cho_factor(L, lower=True, check_finite=False)
         return factor
 
@@ -265,6 +318,11 @@ class Factor:
         if self._matrix is not None:
             x = jacobi_pcg(self._matrix, b, self._inverse_diagonal, PCG_TOLERANCE,
                            PCG_MAX_ITERATIONS)
+            if self._route is not None:  # (where CG fails more often than not, the
+                if x is None:  # graph's later Laplacians are factored at once)
+                    self._route.not_converged += 1
+                else:
+                    self._route.converged += 1
             if x is not None:
                 return x
             self._factor_sparse(self._matrix)  # did not converge: factor after all
@@ -302,8 +360,9 @@ CG converges in a few dozen products with the sparse matrix. Chains and pose gra
 WELL_CONNECTED: ContextVar[bool] = ContextVar("WELL_CONNECTED", default=False)
 """Set (by :func:`~rotavg_ros.core.robust.verify.verify`) while the input graph has at
 least ``ITERATIVE_MIN_DEGREE`` edges per node: then every large normal matrix is solved by
-conjugate gradients first, also where GNC's zero weights leave fewer active edges. Those
-matrices are still expander-like, and SuperLU fills them in: a 5,000-node graph of mean
+conjugate gradients first (until CG fails more often than not on the graph's matrices:
+:class:`ConjugateGradientRoute`), also where GNC's zero weights leave fewer active edges.
+Those matrices are still expander-like, and SuperLU fills them in: a 5,000-node graph of mean
 degree 18 spent 81 s in 7 factorizations (11.6 s each) where CG converges in at most 200
 iterations."""
 PCG_MAX_ITERATIONS = 300
