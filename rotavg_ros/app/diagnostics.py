@@ -69,6 +69,7 @@ def diagnostic_values(
             "closure_runs_left_out": result.num_runs_left_out,
             "trusted_odometry_edges": result.num_trusted_odometry,
             "distrusted_odometry_edges": result.num_distrusted_odometry,
+            "unchecked_odometry_edges": result.num_unchecked_odometry,
             "verification": result.verification or "off",
             "noise_sigma_deg": result.noise_sigma_deg,
             "odometry_weight": result.odometry_weight,
@@ -86,6 +87,10 @@ def diagnostic_values(
             level = Level.WARN
             problems.append(f"{result.num_distrusted_odometry} odometry edge(s) disagreed "
                             "with the loop closures across them and were left out")
+        if result.num_unchecked_odometry:
+            level = Level.WARN
+            problems.append(f"{result.num_unchecked_odometry} odometry edge(s) kept against "
+                            "a run of loop closures that nothing else checks")
         if result.num_untested:
             level = Level.WARN
             problems.append(f"{result.num_untested} loop closure(s) could not be tested")

@@ -67,6 +67,11 @@ class SolveResult:
     num_distrusted_odometry: int = 0
     """Odometry edges the verification stopped trusting and left out: the loop closures
     across them disagreed with them (a front end's wrong step, e.g. a track lost)."""
+    num_unchecked_odometry: int = 0
+    """Odometry edges kept on their own word: loop closures disagreed with them, the fit
+    without them explained the data better, but nodes hang by each against one run of
+    those closures alone (one piece of evidence against one step; perceptual aliasing as
+    well as a lost track), so the step stands unchecked."""
     verification: str = ""
     """Which solution the verification kept (largest component): ``dmf`` (the filtered
     DMF), ``robust`` (its least-squares re-solve on every edge), ``dmf_refit`` (the re-solve

@@ -93,6 +93,9 @@ class ComponentSolution:
     inlier_threshold: float = math.inf
     """The verification's inlier threshold on standardized residuals (radians of a
     unit-weight edge; inf: not run)."""
+    unchecked: int = 0
+    """Odometry edges kept against one run of loop closures that nothing else checks
+    (:attr:`.robust.verify.VerifyOutcome.unchecked`)."""
 
 
 @dataclass
@@ -221,6 +224,7 @@ class RotationAverager:
             num_runs_left_out=out.runs_left_out,
             num_trusted_odometry=out.trusted,
             num_distrusted_odometry=out.distrusted,
+            num_unchecked_odometry=out.unchecked,
             cost_by_depth=out.cost_by_depth,
             duration_s=out.duration_s,
             iterations_by_depth=out.iterations_by_depth,
@@ -407,7 +411,8 @@ class RotationAverager:
                                  out.untested, out.relocalized, trusted, first.pruned,
                                  runs_left_out=out.runs_left_out,
                                  distrusted=out.distrusted,
-                                 inlier_threshold=out.noise.threshold)
+                                 inlier_threshold=out.noise.threshold,
+                                 unchecked=out.unchecked)
 
     def _first_fit(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
@@ -839,6 +844,9 @@ class ArraySolution:
     odometry_bias_deg: float = 0.0
     """The odometry's bias removed before the solve, degrees a step (largest component;
     option ``odometry_bias``); 0 where none was."""
+    unchecked: int = 0
+    """Odometry edges kept against one run of loop closures that nothing else checks, over
+    all components."""
 
 
 def average_rotations(
@@ -876,6 +884,7 @@ def average_rotations(
     pruned: tuple[int, ...] = ()
     noise, verification, untested, relocalized, trusted = math.nan, "", 0, 0, 0
     runs_left_out, distrusted, odometry_weight, odometry_bias = 0, 0, 1.0, 0.0
+    unchecked = 0
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
         comp_anchor.append(anchor if label == 0 and anchor in nodes else int(nodes[0]))
@@ -907,6 +916,7 @@ def average_rotations(
         relocalized += sol.relocalized
         runs_left_out += sol.runs_left_out
         distrusted += sol.distrusted
+        unchecked += sol.unchecked
         trusted += sol.trusted
         if nodes.size > best_size:
             depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
@@ -917,7 +927,7 @@ def average_rotations(
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
                          time.perf_counter() - t0, iterations, filter_kept, noise,
                          verification, untested, relocalized, trusted, pruned, runs_left_out,
-                         distrusted, odometry_weight, odometry_bias)
+                         distrusted, odometry_weight, odometry_bias, unchecked)
 
 
 def _folds_keep_tree(n: int, i: IntArray, j: IntArray, seed: int, tree: BoolArray) -> bool:

@@ -43,7 +43,12 @@ steps, seed 0: 50.9 deg mean error). The suspects:
 
 A suspect is only that: the verification re-solves with the suspects as ordinary edges and
 keeps that fit only where it explains the data clearly better
-(:func:`~.verify.robust_resolve`). Where no loop closure that fit keeps ends between a
+(:func:`~.verify.robust_resolve`), and where no step it cuts leaves nodes hanging by it
+against one run of closures alone (:func:`hanging_steps`): one piece of evidence against one
+step that nothing else checks, perceptual aliasing as well as a lost track. Such a step
+stands, unless its size alone is evidence of a lost track (:func:`outsized_steps`: a rare
+jump, or one far above the route's other turns) or a first-pass fit left it out; the
+verification says it kept it unchecked. Where no loop closure that fit keeps ends between a
 suspect it cut and a jump it kept, the closures cannot tell the two cuts apart, and the fit
 leaves out the jump instead (:func:`cuts_onto_jumps`): a cut that is only a misfit costs
 more in that comparison than a jump's.
@@ -57,7 +62,10 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
+from rotavg_ros.core.robust.closure_runs import independent_pieces
 from rotavg_ros.core.so3 import rotation_angle
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
@@ -109,6 +117,11 @@ class OdometrySuspects:
     """The other suspects that are jumps a fit without trust left out
     (:func:`left_out_jumps`): cutting one must pay for itself, but one run of the closures
     it frees is evidence enough. None: no such suspect."""
+
+    def trusting(self, steps: BoolArray) -> OdometrySuspects:
+        """These suspects less the ``steps`` (trusted again)."""
+        left_out = None if self.left_out is None else self.left_out & ~steps
+        return OdometrySuspects(self.edges & ~steps, self.jumps & ~steps, left_out)
 
     def with_left_out(self, left_out: BoolArray) -> OdometrySuspects:
         """These suspects and the ``left_out`` jumps that are not among them yet."""
@@ -186,6 +199,29 @@ def common_jumps(R: FloatArray, odometry: BoolArray) -> BoolArray:
     return jump & (not _rare(jump, odometry))
 
 
+def outsized_steps(R: FloatArray, odometry: BoolArray) -> BoolArray:
+    """The steps whose size alone is evidence of a lost track: the jumps where they are
+    rare (:func:`rare_jumps`), and where they are common, the jumps far above the others
+    (their angle ``JUMP_MADS`` robust spreads above the jumps' median: a car's turns of
+    11-90 deg a step, parking-garage's of 20 deg typically, a wrong step of 140 deg). A turn
+    like the route's others (the Manhattan world's 90 deg turns) is not one."""
+    jump = odometry_jumps(R, odometry)
+    if _rare(jump, odometry):
+        return jump
+    return _far_above(rotation_angle(R), jump)
+
+
+def _far_above(angle: FloatArray, among: BoolArray) -> BoolArray:
+    """The ``among`` edges whose ``angle`` exceeds their median by ``JUMP_MADS`` robust
+    spreads (1.4826 median absolute deviations, at least ``MIN_SPREAD``)."""
+    if not among.any():
+        return np.zeros(angle.shape[0], bool)
+    values = angle[among]
+    median = float(np.median(values))
+    spread = max(1.4826 * float(np.median(np.abs(values - median))), MIN_SPREAD)
+    return among & (angle > median + JUMP_MADS * spread)
+
+
 def _rare(steps: BoolArray, odometry: BoolArray) -> bool:
     """Whether the ``steps`` are rare among the ``odometry`` ones (:data:`RARE_JUMPS`,
     :data:`RARE_JUMPS_AT_LEAST`)."""
@@ -196,13 +232,7 @@ def _rare(steps: BoolArray, odometry: BoolArray) -> bool:
 def odometry_jumps(R: FloatArray, odometry: BoolArray) -> BoolArray:
     """The odometry steps whose measured rotation angle exceeds the odometry's median step
     angle by ``JUMP_MADS`` robust spreads (1.4826 median absolute deviations)."""
-    angle = rotation_angle(R)
-    if not odometry.any():
-        return np.zeros(R.shape[0], bool)
-    steps = angle[odometry]
-    median = float(np.median(steps))
-    spread = max(1.4826 * float(np.median(np.abs(steps - median))), MIN_SPREAD)
-    return odometry & (angle > median + JUMP_MADS * spread)
+    return _far_above(rotation_angle(R), odometry)
 
 
 def cuts_onto_jumps(rotations: FloatArray, i: IntArray, j: IntArray, R: FloatArray,
@@ -230,6 +260,54 @@ def cuts_onto_jumps(rotations: FloatArray, i: IntArray, j: IntArray, R: FloatArr
             rot[node] = (R[edge].T @ rot[other] if i[edge] == other
                          else R[edge] @ rot[other])
     return rot, kept
+
+
+def hanging_steps(i: IntArray, j: IntArray, odometry: BoolArray, kept: BoolArray,
+                  freed: BoolArray, cuts: BoolArray) -> tuple[BoolArray, BoolArray]:
+    """``(steps, closures)``: the ``cuts`` (odometry steps a fit leaves out) that nodes hang
+    by alone, and the loop closures out of those nodes. Nodes hang by a cut where the fit's
+    ``kept`` edges hold them to the rest only through its ``freed`` closures (those a fit
+    trusting the steps rejected), no other ``odometry`` step out of them is left out, and
+    every loop closure out of them, freed or rejected, is one piece of evidence
+    (:func:`~.closure_runs.independent_pieces`: one run, or a single closure; a run the
+    fit kept only in part is still one). There one run of consistent closures stands
+    against one trusted step that nothing else checks: perceptual aliasing as well as a
+    lost track (the Manhattan world's last 244 poses, held by one true 90 deg turn and one
+    run of nine false closures: the turn was cut, every pose after it 73 deg off). Nodes
+    between two steps left out do not hang by one: the two check each other through them
+    (City10000's lost track, steps two keyframes apart both wrong, the nodes between held
+    by one run of true closures)."""
+    num_nodes = int(max(i.max(initial=-1), j.max(initial=-1))) + 1
+    held = kept & ~freed
+    graph = coo_matrix((np.ones(np.count_nonzero(held)), (i[held], j[held])),
+                       shape=(num_nodes, num_nodes))
+    label = connected_components(graph, directed=False)[1]
+    main = np.bincount(label).argmax()
+    steps_out = odometry & ~kept
+    steps = np.zeros(i.size, bool)
+    closures = np.zeros(i.size, bool)
+    for cut in np.flatnonzero(cuts):
+        for end in (int(i[cut]), int(j[cut])):
+            part = label[end]
+            if part == main:
+                continue
+            rim = (label[i] == part) != (label[j] == part)
+            if (np.count_nonzero(steps_out & rim) == 1
+                    and independent_pieces(i, j, ~odometry & rim) <= 1):
+                steps[cut] = True
+                closures |= ~odometry & rim
+    return steps, closures
+
+
+def steps_spanned(i: IntArray, j: IntArray, closures: BoolArray,
+                  odometry: BoolArray) -> BoolArray:
+    """The ``odometry`` steps ``(m, m + 1)`` that one of the ``closures`` ``(a, b)``,
+    ``a < b``, spans (``a <= m < b``): the steps its loop over the odometry runs through,
+    any of which a cut could fit it by."""
+    num_nodes = int(max(i.max(initial=-1), j.max(initial=-1))) + 1
+    a, b = np.minimum(i[closures], j[closures]), np.maximum(i[closures], j[closures])
+    across = _count_across(a, b, num_nodes) > 0
+    return odometry & across[np.minimum(i, j)]
 
 
 def _steps_from(num_nodes: int, i: IntArray, j: IntArray, odometry: BoolArray) -> IntArray:

@@ -123,8 +123,11 @@ from rotavg_ros.core.robust.odometry_breaks import (
     OdometrySuspects,
     common_jumps,
     cuts_onto_jumps,
+    hanging_steps,
     left_out_jumps,
+    outsized_steps,
     rare_jumps,
+    steps_spanned,
     suspect_odometry,
 )
 from rotavg_ros.core.robust.odometry_start import odometry_start
@@ -162,6 +165,10 @@ BREAK_TEST_ROUNDS = 3
 """Rounds of the break test (step 4): after a break, the test runs again from the fit that
 cut it, while it finds more (parking-garage with three wrong steps: the first round cut
 two, the closures across the third, 129 of them, pointed at it only then)."""
+
+HANGING_RETRIES = 2
+"""Times a break's untrusting pass runs again with the steps that nodes hang by trusted
+(:func:`_hanging_cuts`) before the break is given up."""
 
 LATER_ROUND_MARGIN = 1.0
 """Caps a later round of the break test must gain beyond the test's own terms: one edge
@@ -280,6 +287,9 @@ class VerifyOutcome:
     distrusted: int = 0
     """Odometry edges the re-solve stopped trusting (:attr:`RobustSolve.distrusted`) that
     the kept solution leaves out."""
+    unchecked: int = 0
+    """Odometry edges kept against one run of loop closures that nothing else checks
+    (:attr:`RobustSolve.unchecked`) that the kept solution keeps."""
 
 
 def few_closures(trusted: BoolArray) -> bool:
@@ -581,6 +591,11 @@ class RobustSolve:
     """Odometry edges no longer trusted: the loop closures across them disagreed with them
     (:mod:`.odometry_breaks`); None: every odometry edge trusted. Those a kept solution
     leaves out are counted as distrusted (:attr:`VerifyOutcome.distrusted`)."""
+    unchecked: BoolArray | None = None
+    """Odometry edges still trusted that the break test would have cut but that nodes hang
+    by against one run of loop closures alone (:func:`_hanging_cuts`), where the fit still
+    rejects a closure of that run: kept on the odometry's word, which nothing else checks.
+    None: none."""
 
 
 def verify(
@@ -630,6 +645,9 @@ def robust_resolve(
     runs_left_out = 0
     distrusted: BoolArray | None = None  # odometry no longer trusted (suspects of a break)
     jumps = np.zeros(i.size, bool)  # of those, the jumps (a lost track's steps)
+    # Steps a break would have cut that nodes hang by against one run of closures alone,
+    # with those closures: trusted on the odometry's word (:func:`_hanging_cuts`).
+    hanging: list[tuple[BoolArray, BoolArray]] = []
 
     def cost(rotations: FloatArray) -> float:
         return truncated_l1(rotations, i, j, R, w, cap, known)
@@ -689,6 +707,36 @@ def robust_resolve(
         # the pass rejects the true closures across it instead. The pass runs again with
         # the suspects as ordinary edges, from the odometry's pieces joined where the most
         # closures agree, and stands where it explains the data clearly better.
+
+        def break_that_stands(tried: OdometrySuspects, untrusting: TightFit,
+                              trusted: BoolArray, margin: float = 0.0,
+                              ) -> tuple[OdometrySuspects, TightFit, BoolArray] | None:
+            """The break test (:func:`_breaks_explain_more`) on the untrusting pass of
+            ``tried``; where a step it cuts has nodes hang by it against one run of
+            closures alone (:func:`_hanging_cuts`), that step is trusted again and the
+            pass runs without it, and without the other suspects that closures span
+            and that nothing but their size made suspect (a turn spread over several
+            steps: else the cut moves to the next one), up to ``HANGING_RETRIES``
+            times. ``(suspects, pass, trusted)`` of the break that stands, or None."""
+            for retry in range(HANGING_RETRIES + 1):
+                if not _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted,
+                                            tried, initial_threshold, margin):
+                    return None
+                steps, closures = _hanging_cuts(tight_fit, untrusting, i, j, R, trusted,
+                                                tried)
+                if not steps.any():
+                    return tried, untrusting, trusted
+                hanging.append((steps, closures))
+                judged = tried.edges & ~outsized_steps(R, odometry)
+                if tried.left_out is not None:
+                    judged &= ~tried.left_out
+                tried = tried.trusting(steps | (judged & steps_spanned(i, j, closures,
+                                                                       odometry)))
+                if retry == HANGING_RETRIES or not tried.edges.any():
+                    return None
+                untrusting, trusted = untrusted(tried)
+            return None
+
         misfit = ((step3_residuals > initial_threshold)
                   | (residual_angles(tight_fit.rotations, i, j, R) * np.sqrt(w)
                      > GNC_SIGMAS * tight_fit.noise.sigma))
@@ -710,10 +758,10 @@ def robust_resolve(
             untrusting, trusted = untrusted(tried)
             if tried.left_out is not None and not (tried.left_out & ~untrusting.inlier).any():
                 continue  # no left-out jump cut: no break of theirs found
-            if _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, tried,
-                                    initial_threshold):
-                tight_fit, known, distrusted = untrusting, trusted, tried.edges
-                jumps = tried.jumps
+            stood = break_that_stands(tried, untrusting, trusted)
+            if stood is not None:
+                tried, tight_fit, known = stood
+                distrusted, jumps = tried.edges, tried.jumps
                 break
         # Several wrong steps: a fit bent by all of them points at some only, and the
         # closures across the others are rejected by the fit that cut the first ones and
@@ -726,10 +774,11 @@ def robust_resolve(
             if again is None:
                 break
             untrusting, trusted = untrusted(again)
-            if not _breaks_explain_more(tight_fit, untrusting, i, j, R, w, trusted, again,
-                                        initial_threshold, margin=LATER_ROUND_MARGIN):
+            stood = break_that_stands(again, untrusting, trusted, LATER_ROUND_MARGIN)
+            if stood is None:
                 break
-            tight_fit, known, distrusted, jumps = untrusting, trusted, again.edges, again.jumps
+            again, tight_fit, known = stood
+            distrusted, jumps = again.edges, again.jumps
         rot, inlier, noise, t = (tight_fit.rotations, tight_fit.inlier, tight_fit.noise,
                                  tight_fit.t)
         runs_left_out = tight_fit.runs_left_out
@@ -804,8 +853,15 @@ def robust_resolve(
         noise, _, t = _fit_and_classify(rot, i, j, R, w, inlier, max_threshold, tree)
         cap = _cap(noise, initial_threshold)
     gaussian = looks_gaussian(t, inlier, edge_residuals(rot, i, j, R))
+    # Those steps are unchecked where the fit still rejects a closure out of their nodes
+    # (where it keeps them all, a break elsewhere reconciled the two).
+    unchecked = np.zeros(i.size, bool)
+    for steps, closures in hanging:
+        if (closures & ~inlier).any():
+            unchecked |= steps & known
     return RobustSolve(rot, inlier, noise, t, cap, known, tree, start, relocalized,
-                       restarted is not None, runs_left_out, gaussian, distrusted)
+                       restarted is not None, runs_left_out, gaussian, distrusted,
+                       unchecked)
 
 
 def turn_blocks(
@@ -1201,6 +1257,25 @@ def _breaks_explain_more(trusting: TightFit, untrusting: TightFit, i: IntArray,
                 < truncated_squares(trusting.rotations, i, j, R, w, c, trusted))
 
 
+def _hanging_cuts(trusting: TightFit, untrusting: TightFit, i: IntArray, j: IntArray,
+                  R: FloatArray, trusted: BoolArray, suspects: OdometrySuspects,
+                  ) -> tuple[BoolArray, BoolArray]:
+    """``(steps, closures)``: the steps the untrusting pass cuts (``suspects`` it leaves
+    out) that nodes hang by, against one run of loop closures and nothing else, and those
+    closures (:func:`hanging_steps`): one piece of evidence against one trusted step that
+    nothing else checks. Not the steps whose size alone is evidence of a lost track
+    (:func:`outsized_steps`), nor jumps a first-pass fit left out (``suspects.left_out``:
+    that fit's word besides). Such steps stay trusted (:func:`robust_resolve`)."""
+    odometry = trusted | suspects.edges
+    judged = suspects.edges & ~untrusting.inlier & ~outsized_steps(R, odometry)
+    if suspects.left_out is not None:
+        judged &= ~suspects.left_out
+    if not judged.any():
+        return judged, judged
+    freed = untrusting.inlier & ~trusting.inlier & ~odometry
+    return hanging_steps(i, j, odometry, untrusting.inlier | trusted, freed, judged)
+
+
 def _judged_scale(*fits: tuple[NoiseModel, FloatArray, BoolArray]) -> float:
     """The lowest finite noise scale of the ``(noise, t, inlier)`` fits, among those that
     rest on at least ``MIN_NOISE_RESIDUALS`` informative inliers (finite ``t``); the lowest
@@ -1386,12 +1461,14 @@ def choose(
                          int(np.sum(np.isnan(t_dmf) & ~tree)), cap, dmf_moves, known,
                          classified | known, runs_left_out=robust.runs_left_out,
                          resolve_gaussian=robust.gaussian,
-                         distrusted=_count(robust.distrusted, classified | known))
+                         distrusted=_count(robust.distrusted, ~(classified | known)),
+                         unchecked=_count(robust.unchecked, classified | known))
 
 
-def _count(distrusted: BoolArray | None, inlier: BoolArray) -> int:
-    """The distrusted odometry edges that a kept solution leaves out (``~inlier``)."""
-    return 0 if distrusted is None else int(np.count_nonzero(distrusted & ~inlier))
+def _count(edges: BoolArray | None, among: BoolArray) -> int:
+    """How many of the ``edges`` (None: none) are ``among`` these (e.g. those a kept
+    solution leaves out)."""
+    return 0 if edges is None else int(np.count_nonzero(edges & among))
 
 
 def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutcome:
@@ -1400,5 +1477,6 @@ def _resolve_stands(robust: RobustSolve, costs: dict[str, float]) -> VerifyOutco
                          robust.start, int(np.sum(np.isnan(robust.t) & ~robust.tree)),
                          robust.cap, robust.relocalized, robust.known, robust.inlier,
                          robust.restarted, robust.runs_left_out, robust.gaussian,
-                         _count(robust.distrusted, robust.inlier))
+                         _count(robust.distrusted, ~robust.inlier),
+                         _count(robust.unchecked, robust.inlier | robust.known))
 
