@@ -727,11 +727,9 @@ def robust_resolve(
                 if not steps.any():
                     return tried, untrusting, trusted
                 hanging.append((steps, closures))
-                judged = tried.edges & ~outsized_steps(R, odometry)
-                if tried.left_out is not None:
-                    judged &= ~tried.left_out
-                tried = tried.trusting(steps | (judged & steps_spanned(i, j, closures,
-                                                                       odometry)))
+                spanned = steps_spanned(i, j, closures, odometry)
+                tried = tried.trusting(steps | (_suspect_by_closures_only(R, odometry, tried)
+                                                & spanned))
                 if retry == HANGING_RETRIES or not tried.edges.any():
                     return None
                 untrusting, trusted = untrusted(tried)
@@ -1267,13 +1265,22 @@ def _hanging_cuts(trusting: TightFit, untrusting: TightFit, i: IntArray, j: IntA
     (:func:`outsized_steps`), nor jumps a first-pass fit left out (``suspects.left_out``:
     that fit's word besides). Such steps stay trusted (:func:`robust_resolve`)."""
     odometry = trusted | suspects.edges
-    judged = suspects.edges & ~untrusting.inlier & ~outsized_steps(R, odometry)
-    if suspects.left_out is not None:
-        judged &= ~suspects.left_out
+    judged = _suspect_by_closures_only(R, odometry, suspects) & ~untrusting.inlier
     if not judged.any():
         return judged, judged
     freed = untrusting.inlier & ~trusting.inlier & ~odometry
     return hanging_steps(i, j, odometry, untrusting.inlier | trusted, freed, judged)
+
+
+def _suspect_by_closures_only(R: FloatArray, odometry: BoolArray,
+                          suspects: OdometrySuspects) -> BoolArray:
+    """The ``suspects`` that nothing but the closures across them made suspect: not
+    outsized (:func:`outsized_steps`: their size is evidence by itself), not left out by a
+    first-pass fit (``suspects.left_out``: that fit's word besides)."""
+    judged = suspects.edges & ~outsized_steps(R, odometry)
+    if suspects.left_out is not None:
+        judged &= ~suspects.left_out
+    return judged
 
 
 def _judged_scale(*fits: tuple[NoiseModel, FloatArray, BoolArray]) -> float:
