@@ -12,8 +12,10 @@ from rotavg_ros.core.robust.closure_consistency import (
     LOOP_QUANTILE,
     ClosureLoops,
     _mutually_consistent,
+    closure_loops,
     consistent_closures,
     loop_noise_scale,
+    neighbour_supported,
 )
 from rotavg_ros.core.robust.odometry_start import odometry_rotations
 from rotavg_ros.core.so3 import rotation_about_axis
@@ -155,3 +157,48 @@ def test_the_greedy_set_follows_its_rule_and_has_no_conflict() -> None:
         alive = _mutually_consistent(conflict)
         assert not conflict[np.ix_(alive, alive)].any()
         np.testing.assert_array_equal(alive, _greedy_reference(conflict))
+
+
+def _supported_closures(case: rc.RegimeCase, R: np.ndarray) -> np.ndarray:
+    """Per edge of ``case`` (measurements ``R``): whether a neighbouring closure supports
+    it (False for odometry and untestable closures)."""
+    w = np.ones(case.num_edges)
+    loops = closure_loops(case.num_nodes, case.i, case.j, R, w, case.odometry)
+    assert loops is not None
+    sigma = loop_noise_scale(case.num_nodes, case.i, case.j, R, w, case.odometry, loops)
+    out = np.zeros(case.num_edges, bool)
+    out[loops.testable[neighbour_supported(case.num_nodes, case.i, case.j, loops, sigma)]] = True
+    return out
+
+
+def test_runs_of_true_closures_support_each_other_and_random_false_ones_have_no_support(
+) -> None:
+    """A route driven three times, its true closures in runs (every second keyframe, the
+    same place give or take 2) and 30% random false closures: every true closure but a
+    few at the runs' ends is supported, no false one; one closure of a run turned 40 deg
+    off loses its support, and its neighbours keep theirs from the rest of the run."""
+    case = rc.revisit_case("test/support", 300, 3, runs=10, false_random=0.3, seed=0)
+    assert case.inlier is not None
+    closures = ~case.odometry
+    supported = _supported_closures(case, case.R)
+    assert not supported[~case.inlier].any()
+    assert np.count_nonzero(supported & case.inlier & closures) >= 0.9 * np.count_nonzero(
+        case.inlier & closures)
+    true_closures = np.flatnonzero(case.inlier & closures & supported)
+    middle = int(true_closures[len(true_closures) // 2])
+    R = case.R.copy()
+    R[middle] = rotation_about_axis(np.array([0.0, 0.0, 1.0]), np.radians(40.0))[0] @ R[middle]
+    again = _supported_closures(case, R)
+    assert not again[middle]
+    assert np.array_equal(np.delete(again, middle), np.delete(supported, middle))
+
+
+def test_no_closure_is_supported_without_neighbours_or_a_noise_scale() -> None:
+    """Closures far apart from each other (a chain's sparse ones) have no neighbour; a NaN
+    scale supports nothing."""
+    case = rc.chain_case("test/sparse", 600, closures=12, seed=1)
+    assert not _supported_closures(case, case.R).any()
+    w = np.ones(case.num_edges)
+    loops = closure_loops(case.num_nodes, case.i, case.j, case.R, w, case.odometry)
+    assert loops is not None
+    assert not neighbour_supported(case.num_nodes, case.i, case.j, loops, float("nan")).any()

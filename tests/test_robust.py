@@ -52,6 +52,7 @@ from rotavg_ros.core.robust.verify import (
     least_squares_from_relaxation,
     odometry_edges,
     robust_resolve,
+    supported_closures_start,
     truncated_l1,
     verify,
 )
@@ -1244,3 +1245,28 @@ def test_huber_fit_minimizes_the_huber_cost() -> None:
         nudged = np.einsum("nab,nbc->nac", exp_map(rng.normal(0.0, 1e-3, (40, 3))), fit)
         assert cost(nudged) >= cost(fit) - 1e-9
     np.testing.assert_allclose(huber_fit(ls, i, j, R, w, 1e3), ls, atol=1e-8)
+
+
+def test_the_supported_start_fits_the_runs_of_closures_and_leaves_random_false_ones_out(
+) -> None:
+    """A route driven three times with its true closures in runs and 30% random false
+    closures: the start from the odometry and the supported closures is as close to the
+    truth as least squares on the true edges, where least squares on every edge is bent
+    several times further; a chain whose few closures have no neighbour gets no start."""
+    from benchmarks import regime_cases as rc
+
+    case = rc.revisit_case("test/supported-start", 300, 3, runs=10, false_random=0.3,
+                           seed=0)
+    assert case.inlier is not None
+    n, i, j, R = case.num_nodes, case.i, case.j, case.R
+    w = np.ones(case.num_edges)
+    start = supported_closures_start(n, i, j, R, w, case.odometry)
+    assert start is not None
+    oracle = refine_least_squares(case.gt, i, j, R, w * case.inlier)
+    every = refine_least_squares(case.gt, i, j, R, w)
+    assert _median_error(start, case.gt) < 1.2 * _median_error(oracle, case.gt)
+    assert _median_error(every, case.gt) > 3.0 * _median_error(start, case.gt)
+    sparse_case = rc.chain_case("test/sparse", 600, closures=12, seed=1)
+    assert supported_closures_start(sparse_case.num_nodes, sparse_case.i, sparse_case.j,
+                                    sparse_case.R, np.ones(sparse_case.num_edges),
+                                    sparse_case.odometry) is None

@@ -71,6 +71,10 @@ LOOP_BOUND_Z = 2.326
 """The standard normal quantile at :data:`LOOP_BOUND_CONFIDENCE` (written out: importing
 ``scipy.stats`` costs 0.3-0.4 s)."""
 
+NEIGHBOUR_REACH = 2
+"""Poses by which each end of one loop closure may lie from the same end of another for
+the two to be neighbours (:func:`neighbour_supported`)."""
+
 _ROWS = 256  # pairs are tested in blocks of this many rows (4 MB temporaries at the limit)
 
 
@@ -229,6 +233,54 @@ def consistent_closures(
             keep[testable[~_mutually_consistent(ratio > chi2_999 * sigma * sigma)]] = False
         out.append(keep)
     return out
+
+
+def neighbour_supported(num_nodes: int, i: IntArray, j: IntArray, loops: ClosureLoops,
+                        sigma: float, reach: int = NEIGHBOUR_REACH) -> BoolArray:
+    """Per closure of ``loops.testable``: whether its neighbours support it, more of them
+    agreeing with it than not. Neighbours are closures whose ends lie within ``reach``
+    poses of its own (``|a - c|``, ``|b - d|``) on the same piece of the odometry; one
+    agrees where the loop of the two and the odometry between their ends passes the
+    pairwise test (module docstring) at noise scale ``sigma`` (per axis of a unit-weight
+    edge, radians). A front end that recognises a place does so over several keyframes in
+    a row, so true closures come in runs of neighbours that agree. A random false closure
+    has no neighbour that agrees with it, or, where it replaced a true match among such a
+    run, more that disagree; a run of false closures is supported among itself (the run
+    test and the tight pass judge those). Neighbours are found by the closures' ends, not
+    by pairs: linear in the closures, however many."""
+    a = loops.a
+    b = np.maximum(i, j)[loops.testable]
+    votes = np.zeros(a.size, np.int64)  # neighbours that agree less those that do not
+    if a.size < 2 or not (math.isfinite(sigma) and sigma > 0.0):
+        return votes > 0
+    key = a * np.int64(num_nodes) + b
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    chi2_999 = CHI2_3_999 if NOISE_AXES.get() == 3 else CHI2_1_999
+    for da in range(-reach, reach + 1):
+        for db in range(-reach, reach + 1):
+            if da == 0 and db == 0:
+                continue
+            wanted = (a + da) * np.int64(num_nodes) + (b + db)
+            at = np.minimum(np.searchsorted(sorted_key, wanted), key.size - 1)
+            found = sorted_key[at] == wanted
+            e, f = np.flatnonzero(found), order[at[found]]
+            same = loops.piece[a[e]] == loops.piece[a[f]]
+            e, f = e[same], f[same]
+            if not e.size:
+                continue
+            cos = (np.einsum("kab,kab->k", loops.E[e], loops.E[f]) - 1.0) / 2.0
+            angle = np.arccos(np.clip(cos, -1.0, 1.0))  # of E_e E_f^T
+            # The odometry between the first ends and between the second ends, less their
+            # overlap (as in :func:`consistent_closures`), and the two closures' own.
+            overlap = np.maximum(np.maximum(loops.pa[e], loops.pa[f])
+                                 - np.minimum(loops.pb[e], loops.pb[f]), 0.0)
+            var = (np.abs(loops.pa[e] - loops.pa[f]) + np.abs(loops.pb[e] - loops.pb[f])
+                   - 2.0 * overlap + loops.own[e] + loops.own[f])
+            with np.errstate(invalid="ignore"):  # inf - inf: through a zero-weight edge
+                agree = angle ** 2 <= chi2_999 * sigma ** 2 * var
+            np.add.at(votes, e, np.where(agree, 1, -1))
+    return votes > 0
 
 
 def _mutually_consistent(conflict: BoolArray) -> BoolArray:

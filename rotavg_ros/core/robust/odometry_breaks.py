@@ -205,10 +205,11 @@ def outsized_steps(R: FloatArray, odometry: BoolArray) -> BoolArray:
     (their angle ``JUMP_MADS`` robust spreads above the jumps' median: a car's turns of
     11-90 deg a step, parking-garage's of 20 deg typically, a wrong step of 140 deg). A turn
     like the route's others (the Manhattan world's 90 deg turns) is not one."""
-    jump = odometry_jumps(R, odometry)
+    angle = rotation_angle(R)
+    jump = _far_above(angle, odometry)  # (odometry_jumps, the angles computed once)
     if _rare(jump, odometry):
         return jump
-    return _far_above(rotation_angle(R), jump)
+    return _far_above(angle, jump)
 
 
 def _far_above(angle: FloatArray, among: BoolArray) -> BoolArray:
