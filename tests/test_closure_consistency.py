@@ -167,7 +167,7 @@ def _supported_closures(case: rc.RegimeCase, R: np.ndarray) -> np.ndarray:
     assert loops is not None
     sigma = loop_noise_scale(case.num_nodes, case.i, case.j, R, w, case.odometry, loops)
     out = np.zeros(case.num_edges, bool)
-    out[loops.testable[neighbour_supported(case.num_nodes, case.i, case.j, loops, sigma)]] = True
+    out[loops.testable[neighbour_supported(case.num_nodes, case.i, case.j, loops, sigma)[0]]] = True
     return out
 
 
@@ -201,4 +201,4 @@ def test_no_closure_is_supported_without_neighbours_or_a_noise_scale() -> None:
     w = np.ones(case.num_edges)
     loops = closure_loops(case.num_nodes, case.i, case.j, case.R, w, case.odometry)
     assert loops is not None
-    assert not neighbour_supported(case.num_nodes, case.i, case.j, loops, float("nan")).any()
+    assert not neighbour_supported(case.num_nodes, case.i, case.j, loops, float("nan"))[0].any()

@@ -1252,7 +1252,8 @@ def test_the_supported_start_fits_the_runs_of_closures_and_leaves_random_false_o
     """A route driven three times with its true closures in runs and 30% random false
     closures: the start from the odometry and the supported closures is as close to the
     truth as least squares on the true edges, where least squares on every edge is bent
-    several times further; a chain whose few closures have no neighbour gets no start."""
+    several times further. A chain whose few closures have no neighbour gets no start, nor
+    one where a single run holds most of the support."""
     from benchmarks import regime_cases as rc
 
     case = rc.revisit_case("test/supported-start", 300, 3, runs=10, false_random=0.3,
@@ -1266,6 +1267,18 @@ def test_the_supported_start_fits_the_runs_of_closures_and_leaves_random_false_o
     every = refine_least_squares(case.gt, i, j, R, w)
     assert _median_error(start, case.gt) < 1.2 * _median_error(oracle, case.gt)
     assert _median_error(every, case.gt) > 3.0 * _median_error(start, case.gt)
+    # A 50-keyframe chain with a wrong step, 8 lone true closures and a run of 7 false
+    # ones: the run is half the closures and supports itself; one run is no start (from
+    # it the whole solve ended 36.8 deg mean off, the oracle's 2.00).
+    lone = rc.broken_odometry_case("short/50/grouped7/broken1", rc.chain_case(
+        "short/50/grouped7", 50, closures=8, seed=110, noise_model="tangent",
+        false_grouped=7 / 15), steps=1, seed=10)
+    assert supported_closures_start(lone.num_nodes, lone.i, lone.j, lone.R,
+                                    np.ones(lone.num_edges), lone.odometry) is None
+    chain_only = rc.chain_case("test/no-closure", 50, closures=0, seed=1)
+    assert supported_closures_start(chain_only.num_nodes, chain_only.i, chain_only.j,
+                                    chain_only.R, np.ones(chain_only.num_edges),
+                                    chain_only.odometry) is None
     sparse_case = rc.chain_case("test/sparse", 600, closures=12, seed=1)
     assert supported_closures_start(sparse_case.num_nodes, sparse_case.i, sparse_case.j,
                                     sparse_case.R, np.ones(sparse_case.num_edges),

@@ -37,6 +37,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from rotavg_ros.core.robust.noise import NOISE_AXES
 from rotavg_ros.core.robust.odometry_start import odometry_rotations
@@ -236,7 +238,8 @@ def consistent_closures(
 
 
 def neighbour_supported(num_nodes: int, i: IntArray, j: IntArray, loops: ClosureLoops,
-                        sigma: float, reach: int = NEIGHBOUR_REACH) -> BoolArray:
+                        sigma: float, reach: int = NEIGHBOUR_REACH
+                        ) -> tuple[BoolArray, IntArray]:
     """Per closure of ``loops.testable``: whether its neighbours support it, more of them
     agreeing with it than not. Neighbours are closures whose ends lie within ``reach``
     poses of its own (``|a - c|``, ``|b - d|``) on the same piece of the odometry; one
@@ -247,12 +250,17 @@ def neighbour_supported(num_nodes: int, i: IntArray, j: IntArray, loops: Closure
     has no neighbour that agrees with it, or, where it replaced a true match among such a
     run, more that disagree; a run of false closures is supported among itself (the run
     test and the tight pass judge those). Neighbours are found by the closures' ends, not
-    by pairs: linear in the closures, however many."""
+    by pairs: linear in the closures, however many.
+
+    Returns ``(supported, run)``: ``run`` labels each closure by the group that agreeing
+    neighbours join it to (a run of a front end's closures; a closure no neighbour agrees
+    with is a group of its own)."""
     a = loops.a
     b = np.maximum(i, j)[loops.testable]
     votes = np.zeros(a.size, np.int64)  # neighbours that agree less those that do not
+    joined: list[tuple[IntArray, IntArray]] = []  # pairs of neighbours that agree
     if a.size < 2 or not (math.isfinite(sigma) and sigma > 0.0):
-        return votes > 0
+        return votes > 0, np.arange(a.size)
     key = a * np.int64(num_nodes) + b
     order = np.argsort(key, kind="stable")
     sorted_key = key[order]
@@ -280,7 +288,12 @@ def neighbour_supported(num_nodes: int, i: IntArray, j: IntArray, loops: Closure
             with np.errstate(invalid="ignore"):  # inf - inf: through a zero-weight edge
                 agree = angle ** 2 <= chi2_999 * sigma ** 2 * var
             np.add.at(votes, e, np.where(agree, 1, -1))
-    return votes > 0
+            joined.append((e[agree], f[agree]))
+    e = np.concatenate([x for x, _ in joined]) if joined else np.zeros(0, np.int64)
+    f = np.concatenate([y for _, y in joined]) if joined else np.zeros(0, np.int64)
+    run = connected_components(coo_matrix((np.ones(e.size), (e, f)), shape=(a.size,) * 2),
+                               directed=False)[1]
+    return votes > 0, run
 
 
 def _mutually_consistent(conflict: BoolArray) -> BoolArray:
