@@ -158,10 +158,11 @@ odometry chain keeps the flat start: the chain's drift is what it must escape.""
 MIN_SUPPORTED_SHARE = 0.5
 """The share of the loop closures their neighbours must support for the supported start
 (:func:`supported_closures_start`) to be tried: where closures come in runs (a route
-revisited keyframe after keyframe: the Manhattan world, 85%), the start is the graph
-without its random false closures; where most have no neighbour (revisits far apart:
-the grid walks, 28-32%), it drops most true closures too and is one more start drifting
-along the odometry, whose GNC ended in another basin as often for the worse."""
+revisited keyframe after keyframe: the Manhattan world at 5 deg + 20% false, 75%), the
+start is the graph without its random false closures; where most have no neighbour
+(revisits far apart: the grid walks, 22-32%), it drops most true closures too and is one
+more start drifting along the odometry, whose GNC ended in another basin as often for
+the worse. A run may hold at most this share of the supported closures."""
 
 BREAK_PENALTY = 3.0
 """Odometry suspects of a break (:mod:`.odometry_breaks`) become ordinary edges only where
