@@ -10,8 +10,14 @@ wrong step, and cutting that step removes them at once. So each trusted jump is 
 how much the least-squares sum would fall without it, to first order
 (:func:`leave_one_out_drops`); steps between the same closures score alike (the closures
 cannot tell them apart), so the jumps of the few best distinct scores above the penalty are
-refitted without their step, the edges within the cap re-admitted, and the refit whose
-truncated squares fall by more than the penalty, the most, stands (:func:`cut_bent_jump`).
+refitted without their step: least squares unbends the route, GNC-TLS at the cap judges
+every edge again from there, and the refit whose truncated squares fall by more than the
+penalty, the most, stands (:func:`cut_bent_jump`). The GNC brings back the closures the
+bend had rejected where the cut explains them. Re-admitting only those within the cap of
+the unbent route left them out, that route being least squares on the bent fit's closures
+(a route driven twice, one wrong step of 108 deg among 76 turns: 84 of 117 closures kept
+with the cut as without it, so the cut did not pay, 19.9 deg mean error against the
+oracle's 3.7; with the GNC 115 kept, 3.9 deg).
 A true turn's cut frees nothing and bends the route elsewhere. The verification runs it on
 odometry chains with sparse loop closures only (:func:`~.verify.robust_resolve`): on a pose
 graph dense with loops a biased odometry strains every step, and a cut that relieves the
@@ -31,8 +37,8 @@ from rotavg_ros.core.robust.gauss_newton import (
     edge_residuals,
     effective_resistances,
     refine_least_squares,
-    residual_angles,
 )
+from rotavg_ros.core.robust.gnc import gnc_tls
 from rotavg_ros.core.so3 import rotation_angle
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
@@ -101,8 +107,9 @@ def cut_bent_jump(
     """The cut of one of the ``jumps`` in the fit ``fit`` (``rot`` its least-squares
     solution, ``trusted`` the edges it trusts) that lowers ``cost`` (the truncated squares
     at the cap ``c``, called with the rotations and ``trusted=`` the edges left uncapped;
-    the jump is capped in both) the most, by more than ``penalty`` caps (module
-    docstring); None where none does."""
+    the jump is capped in both) the most, by more than ``penalty`` caps; each refit is
+    least squares without the jump from ``rot``, then GNC-TLS at ``c`` over every edge,
+    the rest of ``trusted`` kept (module docstring). None where none does."""
     candidates = np.flatnonzero(jumps & fit)
     if candidates.size == 0:
         return None
@@ -116,9 +123,12 @@ def cut_bent_jump(
         weights = fitted.copy()
         weights[e] = 0.0
         unbent = refine_least_squares(rot, i, j, R, weights, iterations=UNBEND_ITERATIONS)
-        refit = (residual_angles(unbent, i, j, R) * np.sqrt(w) <= c) | still
+        # Every edge judged again from the unbent route: the closures the bend had
+        # rejected return where the cut explains them (module docstring).
+        judged = gnc_tls(unbent, i, j, R, w, c, still)
+        refit = (judged.weights > 0.0) | still
         refit[e] = False
-        unbent = refine_least_squares(unbent, i, j, R, w * refit)
+        unbent = refine_least_squares(judged.rotations, i, j, R, w * refit)
         gain = cost(rot, trusted=still) - cost(unbent, trusted=still) - penalty * c * c
         if gain > 0.0 and (best is None or gain > best.gain):
             best = JumpCut(unbent, refit, e, gain)
