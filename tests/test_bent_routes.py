@@ -78,3 +78,14 @@ def test_the_closures_a_bend_rejected_return_when_its_wrong_step_is_cut() -> Non
     cut, median = _errors(case)
     assert cut >= 1
     assert median < 1.1 * _errors(case, case.inlier)[1]
+
+
+def test_a_cut_that_explains_the_data_by_one_cap_is_made() -> None:
+    # The lost-track car route at seed 1: the wrong step's cut lowers the truncated squares
+    # by 2.85 caps, which the break test's three caps refused (7.70 deg median against the
+    # oracle's 3.91); a true turn's cut lowers them by chi2_3 sigma^2, one cap at most but
+    # once in a thousand (BENT_CUT_PENALTY).
+    case = _lost_track_route(1, "folded")
+    cut, median = _errors(case)
+    assert cut >= 1
+    assert median < 1.1 * _errors(case, case.inlier)[1]

@@ -186,6 +186,16 @@ explained more, not cuts moved between jumps that no closure tells apart at the 
 truncated squares (stress draw 97's parking-garage: two true turns cut for one, 1.49 deg
 mean -> 9.06)."""
 
+BENT_CUT_PENALTY = 1.0
+"""Caps a jump's cut must lower the truncated squares by, beyond the jump's own, before
+:func:`~.bent_routes.cut_bent_jump` makes it. Where no break is, a cut frees three
+parameters, and the squares fall by ``sigma^2 chi2_3``: above 16.3 ``sigma^2`` with
+probability 0.1%, one cap at ``GNC_SIGMAS`` (a planar problem's ``chi2_1``, 10.8
+``sigma^2``, makes it stricter there). ``BREAK_PENALTY``'s three caps, used here before,
+let the bend stand where the cut explained the data by one to three caps (the lost-track
+car route of ``regime_stress``, 234 draws: means above 1.5x the oracle's 63 -> 48; those
+routes without the wrong step, 186 draws: no cut made)."""
+
 BENT_CUTS = 2
 """Jumps cut, one after the other, where a route bent around them
 (:func:`~.bent_routes.cut_bent_jump`): a lost track rarely breaks more than twice."""
@@ -808,7 +818,7 @@ def robust_resolve(
         for _ in range(BENT_CUTS):
             c = min(GNC_SIGMAS * noise.sigma, initial_threshold)
             bent = cut_bent_jump(rot, i, j, R, w, inlier | known, known, common & ~jumps, c,
-                                 BREAK_PENALTY, functools.partial(
+                                 BENT_CUT_PENALTY, functools.partial(
                                      truncated_squares, i=i, j=j, R=R, w=w, c=c))
             if bent is None:
                 break
