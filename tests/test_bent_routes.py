@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from benchmarks import regime_cases as rc
 from rotavg_ros.core.metrics import evaluate
@@ -49,43 +50,31 @@ def _lost_track_route(seed: int, noise_model: str) -> rc.RegimeCase:
                                    steps=1, seed=seed)
 
 
-def test_a_route_bent_around_a_wrong_turn_is_cut_there() -> None:
-    # regime_stress's lost-track car route at seed 3: a wrong step among 78 jumps (a car's
-    # turns), no closure rejected across it, least squares bent around it. Before the cut:
-    # 20.02 deg median against the oracle's 5.74.
-    case = _lost_track_route(3, "folded")
+# regime_stress's lost-track car route (a route driven twice, one wrong step among the car's
+# turns, jumps common), at seeds where the fit trusting the odometry bends around the step:
+# - 3: no closure rejected across it (20.02 deg median before the cut; the oracle's 5.74);
+# - 22: a wrong step of 108 deg among 76 jumps, 33 of 117 closures rejected. Least squares
+#   without the step, from the bent fit, fitted the 84 kept closures as they were bent and
+#   re-admitted none of the 33: the cut did not pay (16.2 deg median; the oracle's 3.5).
+#   GNC-TLS over every edge after the cut takes them back;
+# - 1: the cut lowers the truncated squares by 2.85 caps, which the break test's three caps
+#   refused (7.70 deg median; the oracle's 3.91). A true turn's cut lowers them by
+#   chi2_3 sigma^2: one cap but once in a thousand (BENT_CUT_PENALTY).
+@pytest.mark.parametrize("seed", [3, 22, 1], ids=["no-closure-rejected", "bend-rejected-closures",
+                                                  "cut-worth-one-to-three-caps"])
+def test_a_route_bent_around_a_wrong_turn_is_cut_there(seed: int) -> None:
+    case = _lost_track_route(seed, "folded")
     cut, median = _errors(case)
     assert cut >= 1
     assert median < 1.1 * _errors(case, case.inlier)[1]
 
 
-def test_a_route_whose_turns_are_all_true_keeps_them() -> None:
-    # The same route without the wrong step: no jump's cut pays for itself.
-    base = rc.revisit_case("revisit/car/2x400", 400, 2, runs=8, trajectory="car", seed=3,
+@pytest.mark.parametrize("seed", [3, 22, 1])
+def test_a_route_whose_turns_are_all_true_keeps_them(seed: int) -> None:
+    # The same routes without the wrong step: no jump's cut pays for itself, at one cap.
+    base = rc.revisit_case("revisit/car/2x400", 400, 2, runs=8, trajectory="car", seed=seed,
                            noise_model="folded")
     cut, median = _errors(base)
     assert cut == 0
     assert median < 1.05 * _errors(base, base.inlier)[1]
 
-
-def test_the_closures_a_bend_rejected_return_when_its_wrong_step_is_cut() -> None:
-    # The lost-track car route at seed 22: the fit trusting the odometry bends around a
-    # wrong step of 108 deg (76 jumps) and rejects 33 of the 117 closures. Least squares
-    # without the step, from the bent fit, fitted the 84 kept closures as they were bent
-    # and re-admitted none of the 33: the cut did not pay (16.2 deg median against the
-    # oracle's 3.5). GNC-TLS over every edge after the cut takes them back.
-    case = _lost_track_route(22, "folded")
-    cut, median = _errors(case)
-    assert cut >= 1
-    assert median < 1.1 * _errors(case, case.inlier)[1]
-
-
-def test_a_cut_that_explains_the_data_by_one_cap_is_made() -> None:
-    # The lost-track car route at seed 1: the wrong step's cut lowers the truncated squares
-    # by 2.85 caps, which the break test's three caps refused (7.70 deg median against the
-    # oracle's 3.91); a true turn's cut lowers them by chi2_3 sigma^2, one cap at most but
-    # once in a thousand (BENT_CUT_PENALTY).
-    case = _lost_track_route(1, "folded")
-    cut, median = _errors(case)
-    assert cut >= 1
-    assert median < 1.1 * _errors(case, case.inlier)[1]
