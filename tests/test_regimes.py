@@ -968,3 +968,31 @@ def test_default_profile_leaves_the_central_anchors_local_minimum_on_a_planar_to
                                np.ones(case.num_edges), SolverOptions.for_profile("default"))
     median = evaluate(dict(enumerate(solved.rotations)), dict(enumerate(case.gt))).median_deg
     assert median < 12.0
+
+
+def test_short_chains_tell_a_wrong_step_only_where_two_ways_of_true_closures_join_its_pieces(
+) -> None:
+    """``short_chains``' tellability: the edge-disjoint ways of true closures between the two
+    odometry pieces a wrong step separates. Closures that cross both of two wrong steps
+    leave the block between them unreached (0 ways), however many cross; two closures
+    from different places to one piece are two ways, one closure is one."""
+    from benchmarks.short_chains import _true_joins
+
+    n = 40
+    steps = [(k, k + 1) for k in range(n - 1)]
+
+    def chain(closures: list[tuple[int, int]], wrong: list[int]) -> rc.RegimeCase:
+        edges = np.array(steps + closures, np.int64)
+        i, j = edges[:, 0], edges[:, 1]
+        inlier = np.ones(i.size, bool)
+        inlier[wrong] = False  # step k joins k, k + 1
+        gt = np.repeat(np.eye(3)[None], n, axis=0)
+        return rc.RegimeCase("t", "chain", n, i, j, rc.relative(gt, i, j), gt, inlier=inlier)
+
+    around = [(2, 30), (3, 31), (4, 35), (1, 38)]  # each crosses steps 10 and 15
+    assert _true_joins(chain(around, [10, 15])) == 0
+    assert _true_joins(chain(around + [(12, 20)], [10, 15])) == 1
+    assert _true_joins(chain(around + [(12, 20), (13, 25)], [10, 15])) == 2
+    assert _true_joins(chain(around, [10])) == 4
+    assert _true_joins(chain([(5, 30)], [20])) == 1
+    assert _true_joins(chain([(5, 30), (12, 35)], [20])) == 2
