@@ -1219,8 +1219,7 @@ def _untrusting_pass(
     # Manhattan world's 117 misfit steps outvote its closures, and the break test then cut
     # them for runs of false closures (20% random and 10 runs, seed 2: 5.72 -> 11.36 deg).
     one = float(np.median(w[~odometry]))
-    firm = suspects.edges & ~suspects.jumps if few_closures(odometry) else np.zeros_like(
-        suspects.edges)
+    firm = suspects.edges & ~suspects.jumps & few_closures(odometry)
     w_join = np.where(firm, (1.0 + BREAK_PENALTY) * one, np.where(suspects.edges, one, w))
     joined = odometry_start(num_nodes, i, j, R, w_join, trusted, initial_threshold)
     # Step 3's fit trusted the suspects, and where they are wrong it is bent and its
