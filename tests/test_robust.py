@@ -211,6 +211,30 @@ def test_prediction_variance_probes_a_sparsely_factored_graph() -> None:
     assert not np.allclose(probed, exact, rtol=1e-6)  # an estimate, not the dense path
 
 
+def test_shared_probe_draws_give_every_fit_the_numbers_of_a_fresh_draw() -> None:
+    # The same ring with chords, probed (SuperLU) at weights that leave out more, then
+    # fewer, then more edges again: inside one shared draw each fit's estimate is the one
+    # a fresh draw gives, whether the fit has fewer or more edges than the widest so far.
+    rng = np.random.default_rng(5)
+    n = 400
+    a = rng.integers(0, n, 60)
+    i = np.concatenate([np.arange(n), a])
+    j = np.concatenate([(np.arange(n) + 1) % n, (a + rng.integers(2, n - 2, a.size)) % n])
+    rot = random_rotations(n, rng)
+    fits = []
+    for left_out in (30, 5, 50, 0):
+        w = 1.0 + rng.random(i.size)
+        w[n + rng.choice(a.size, left_out, replace=False)] = 0.0
+        fits.append(w)
+    fresh = [prediction_variance(rot, i, j, w, seed=3) for w in fits]
+    with gauss_newton.shared_probe_draws():
+        shared = [prediction_variance(rot, i, j, w, seed=3) for w in fits]
+        other_seed = prediction_variance(rot, i, j, fits[0], seed=4)
+    for f, s in zip(fresh, shared, strict=True):
+        assert np.array_equal(f, s)
+    assert not np.allclose(other_seed, shared[0], rtol=1e-6)  # the seed still counts
+
+
 def test_gauss_newton_step_solves_the_normal_equations() -> None:
     """One Gauss-Newton step (a solve with the scalar graph Laplacian in rotated
     coordinates) is the step of the normal equations assembled from their definition,

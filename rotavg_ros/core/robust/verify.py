@@ -109,6 +109,7 @@ from rotavg_ros.core.robust.gauss_newton import (
     remembered_cg_failures,
     residual_angles,
     shared_elimination_order,
+    shared_probe_draws,
 )
 from rotavg_ros.core.robust.gnc import gnc_tls
 from rotavg_ros.core.robust.noise import (
@@ -560,8 +561,9 @@ def _linear_solves_set_for_the_graph(
     is then solved by conjugate gradients first, until CG fails more often than not:
     :func:`~.gauss_newton.remembered_cg_failures`), one shared fill-reducing order of its
     nodes for the sparse factorizations (:func:`~.gauss_newton.shared_elimination_order`),
-    and the closure runs' leverages kept from fit to fit
-    (:func:`~.closure_runs.remembered_run_leverages`)."""
+    the closure runs' leverages kept from fit to fit
+    (:func:`~.closure_runs.remembered_run_leverages`), and one normal draw for every fit's
+    probes (:func:`~.gauss_newton.shared_probe_draws`)."""
 
     @functools.wraps(solve)
     def run(num_nodes: int, i: IntArray, j: IntArray, *args: P.args,
@@ -569,7 +571,7 @@ def _linear_solves_set_for_the_graph(
         token = WELL_CONNECTED.set(2.0 * i.size / max(num_nodes, 1) >= ITERATIVE_MIN_DEGREE)
         try:
             with (shared_elimination_order(num_nodes, i, j), remembered_run_leverages(),
-                  remembered_cg_failures(num_nodes)):
+                  remembered_cg_failures(num_nodes), shared_probe_draws()):
                 return solve(num_nodes, i, j, *args, **kwargs)
         finally:
             WELL_CONNECTED.reset(token)
