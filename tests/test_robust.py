@@ -186,15 +186,22 @@ def test_laplacian_factor_assembles_the_dense_matrix_directly() -> None:
     assert kinds == {False, True}  # both paths were exercised
 
 
+def _ring_with_chords(n: int, chords: int, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """A ring of ``n`` nodes (edges ``k -> k + 1``), then ``chords`` random chords: ``(i, j)``."""
+    a = rng.integers(0, n, chords)
+    i = np.concatenate([np.arange(n), a])
+    j = np.concatenate([(np.arange(n) + 1) % n, (a + rng.integers(2, n - 2, a.size)) % n])
+    return i, j
+
+
 def test_prediction_variance_probes_a_sparsely_factored_graph() -> None:
     # A ring of 400 nodes with chords is factored by SuperLU: probes estimate q, and the
     # edges marked exact get one solve each. Reference: the effective resistances from the
     # inverse of the anchored Laplacian.
     rng = np.random.default_rng(2)
     n = 400
-    a = rng.integers(0, n, 60)
-    i = np.concatenate([np.arange(n), a])
-    j = np.concatenate([(np.arange(n) + 1) % n, (a + rng.integers(2, n - 2, a.size)) % n])
+    i, j = _ring_with_chords(n, 60, rng)
     w = 1.0 + rng.random(i.size)
     L = np.zeros((n, n))
     np.add.at(L, (i, j), -w)
@@ -217,14 +224,12 @@ def test_shared_probe_draws_give_every_fit_the_numbers_of_a_fresh_draw() -> None
     # a fresh draw gives, whether the fit has fewer or more edges than the widest so far.
     rng = np.random.default_rng(5)
     n = 400
-    a = rng.integers(0, n, 60)
-    i = np.concatenate([np.arange(n), a])
-    j = np.concatenate([(np.arange(n) + 1) % n, (a + rng.integers(2, n - 2, a.size)) % n])
+    i, j = _ring_with_chords(n, 60, rng)
     rot = random_rotations(n, rng)
     fits = []
     for left_out in (30, 5, 50, 0):
         w = 1.0 + rng.random(i.size)
-        w[n + rng.choice(a.size, left_out, replace=False)] = 0.0
+        w[n + rng.choice(i.size - n, left_out, replace=False)] = 0.0
         fits.append(w)
     fresh = [prediction_variance(rot, i, j, w, seed=3) for w in fits]
     with gauss_newton.shared_probe_draws():
