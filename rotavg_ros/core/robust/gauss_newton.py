@@ -479,12 +479,7 @@ def shared_probe_draws() -> Iterator[None]:
 def _probe_normals(rows: int, cols: int, seed: int) -> FloatArray:
     """The probes' ``(rows, cols)`` standard normal draw for ``seed``: from the shared
     :class:`ProbeDraws` where one is set, else drawn now (read-only either way)."""
-    draws = PROBE_DRAWS.get()
-    if draws is not None:
-        return draws.normals(rows, cols, seed)
-    drawn = np.random.default_rng(seed).standard_normal((rows, cols))
-    drawn.flags.writeable = False
-    return drawn
+    return (PROBE_DRAWS.get() or ProbeDraws()).normals(rows, cols, seed)
 
 
 PROBE_BLOCK = 8192
