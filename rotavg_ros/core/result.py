@@ -76,7 +76,9 @@ class SolveResult:
     """Which solution the verification kept (largest component): ``dmf`` (the filtered
     DMF), ``robust`` (its least-squares re-solve on every edge), ``dmf_refit`` (the re-solve
     won the choice and a DMF fitted on its inliers replaced it), ``failed`` (the
-    verification raised; the DMF solution stands) or empty (``paper`` profile)."""
+    verification raised; the DMF solution stands) or empty (``paper`` profile); with
+    ``+ls``, ``+l1``, ``+huber`` or ``+cauchy`` where the cross-validation's fit of the
+    inliers replaced the kept solution."""
     pruned_depths: tuple[int, ...] = ()
     """Depth candidates the candidate race stopped early (largest component; option
     ``prune_ratio``): never chosen; their ``cost_by_depth`` is of the unfinished fit and

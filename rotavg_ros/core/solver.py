@@ -28,7 +28,9 @@ from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.class_noise import class_noise
 from rotavg_ros.core.robust.gauss_newton import refine_least_squares, remembered_cg_failures
 from rotavg_ros.core.robust.l1_choice import (
+    CAUCHY,
     LEAST_SQUARES,
+    EstimatorVerdict,
     choose_by_cross_validation,
     fold_plan,
 )
@@ -572,10 +574,10 @@ class RotationAverager:
         self, rot: FloatArray, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
         inlier: BoolArray, tree: BoolArray, odometry: BoolArray,
     ) -> tuple[FloatArray, str]:
-        """Least squares, L1 or Huber on the ``inlier`` edges, chosen by cross-validation
+        """Least squares, L1, Huber or Cauchy on the ``inlier`` edges, chosen by cross-validation
         (:func:`~.robust.l1_choice.choose_by_cross_validation`, ``tree`` kept in every
         fold where the folds would split the graph): ``(rotations, the estimator whose fit
-        replaced rot, "ls", "l1" or "huber"; "" where rot stands)``."""
+        replaced rot, "ls", "l1", "huber" or "cauchy"; "" where rot stands)``."""
         opt = self.options
         verdict = choose_by_cross_validation(
             rot, i[inlier], j[inlier], R[inlier], w[inlier], seed=opt.runtime.seed,
@@ -583,7 +585,8 @@ class RotationAverager:
             workers=verify_workers(i.size, opt.runtime.threads),
             robust_l1_stands=not (opt.verify.l1_over_robust_with_odometry
                                   and bool(odometry.any())),
-            huber_for_l1=opt.verify.huber_where_weights_differ and _weights_differ(w[inlier]))
+            huber_for_l1=opt.verify.huber_where_weights_differ and _weights_differ(w[inlier]),
+            heavy_tails=opt.verify.cauchy_where_decided)
         swapped = verdict.replaced and verdict.fitted != verdict.estimator
         robust_fate = ("; the kept robust fit stands"
                        if verdict.robust_given and not verdict.replaced
@@ -597,7 +600,8 @@ class RotationAverager:
                   f" (held-out change {verdict.held_out_change:+.3f}, "
                   f"{verdict.folds_run} folds"
                   f"{', a spanning tree in every fold' if verdict.tree_kept else ''}"
-                  f"{robust_fate})")
+                  f"{robust_fate}"
+                  f"{_heavier_tails_said(verdict)})")
         if not verdict.replaced:  # the kept solution stands as it is
             return rot, ""
         # The alternative's fit, or least squares' optimum in a robust fit's place.
@@ -761,6 +765,17 @@ class RotationAverager:
     def _say(self, text: str) -> None:
         if self.options.runtime.progress is not None:
             self.options.runtime.progress(text)
+
+
+def _heavier_tails_said(verdict: EstimatorVerdict) -> str:
+    """The second cross-validation's figures for the progress line ("" where it did not
+    run)."""
+    if not verdict.heavier_folds:
+        return ""
+    decided = ("Cauchy's fit replaces it" if verdict.estimator == CAUCHY
+               else "Cauchy's not decided lower")
+    return (f"; against Cauchy {verdict.heavier_change:+.3f} over "
+            f"{verdict.heavier_folds} folds: {decided}")
 
 
 def warm_start_rotations(
