@@ -303,13 +303,14 @@ def choose_by_cross_validation(
     if not heavy_tails:
         return verdict
 
+    c = CAUCHY_C * median
+
     def against_cauchy(k: int) -> float:
         if k not in fold_fits:  # (the first cross-validation stopped before this fold)
             fold(k)
-        return cauchy_difference(fold_fits[k], i, j, R, w, CAUCHY_C * median, label == k)
+        return cauchy_difference(fold_fits[k], i, j, R, w, c, label == k)
 
-    return _heavier_tails(verdict, against_cauchy, i, j, R, w, CAUCHY_C * median, folds,
-                          workers, in_sample)
+    return _heavier_tails(verdict, against_cauchy, i, j, R, w, c, folds, workers, in_sample)
 
 
 def _heavier_tails(verdict: EstimatorVerdict, against_cauchy: Callable[[int], float],
