@@ -195,6 +195,11 @@ class SparseFitOptions:
     precondition: bool = field(default=True, metadata=_flat("sparse_precondition"))
     """Depth 2: precondition L-BFGS with the graph Laplacian of the loss's curvature
     (:mod:`rotavg_ros.core.dmf.precondition`; beyond the paper, off in profile ``paper``)."""
+    loose_rounds: bool = field(default=True, metadata=_flat("sparse_loose_rounds"))
+    """A reweighting round that another follows ends once its L-BFGS stalls
+    (:data:`~rotavg_ros.core.dmf.sparse.ROUND_LOOSE_FTOL`) instead of converging fully:
+    the next round's weights need the residuals, not the last digits of the fit. The last
+    round converges as before. Off in profile ``paper``."""
 
 
 @dataclass
@@ -453,6 +458,7 @@ _GROUPS: dict[str, type] = {
 PROFILES: dict[str, dict[str, Any]] = {
     "default": {},
     "paper": {"verify": False, "prune_ratio": None, "sparse_precondition": False,
+              "sparse_loose_rounds": False,
               "max_full_width_nodes": 300, "dense_product_density": None,
               "reweight_floor": None, "bracket_depths": False},
 }

@@ -30,6 +30,10 @@ preconditioner is built again at the current factors."""
 LBFGS_FTOL = 1e-12
 """Sparse mode: an L-BFGS run ends when a step lowers the loss by less than this,
 relative to max(|loss|, 1)."""
+ROUND_LOOSE_FTOL = 1e-3
+"""Sparse mode, with :attr:`SparseFitOptions.loose_rounds`: a reweighting round that another
+will follow ends once one of its L-BFGS runs (after the first) lowers the loss by less than
+this, relative; the last round converges fully (``LBFGS_FTOL``)."""
 ROUND_TOLERANCE = 1e-3
 """Sparse mode: the reweighting rounds end when one moves the factors by less than this,
 relative (|x - x_prev| / |x|). On sphere2500 (no outliers) later rounds only shaved the
@@ -86,7 +90,10 @@ def fit_symmetric_lbfgs(
     are first scaled by sqrt(initial weight), so each edge is judged against its own
     stated noise level (SLAM graphs mix very different information matrices); the
     rounds stop early once no edge is above that threshold, or once a round moved the
-    factors by less than ``ROUND_TOLERANCE`` (relative). With ``trusted_start`` (``H0`` a
+    factors by less than ``ROUND_TOLERANCE`` (relative). With ``s.loose_rounds``, a round
+    that another follows ends once an L-BFGS run lowers the loss by less than
+    ``ROUND_LOOSE_FTOL`` (relative); where the rounds then end after all, that round goes on
+    to full convergence, so the last round always converges. With ``trusted_start`` (``H0`` a
     previous or verified solution, not the chordal one) the weights are first updated at
     ``H0`` itself, so the first run does not bend a good start towards the outliers. The
     L-BFGS is preconditioned (:mod:`.precondition`) where its start is near a solution.
@@ -137,17 +144,26 @@ def fit_symmetric_lbfgs(
         chain.backward(h_t_from_nodes(grad))
         return float(loss), flat_grad.clone()
 
-    def reweight(x: torch.Tensor) -> bool:
-        """Scale down (by threshold / residual) the edges whose noise-scaled residual at
-        ``x`` is above ``s.outlier_factor`` x the median; False if none is."""
+    def outlier_scales(x: torch.Tensor) -> torch.Tensor:
+        """Per edge, threshold / residual where the noise-scaled residual at ``x`` is above
+        the threshold ``s.outlier_factor`` x the median, else 1."""
         with torch.no_grad():
             flat.copy_(x)
             Hn = nodes_from_h_t(chain.forward())
             r = blocks.products(Hn)[2].sub_(tR).pow(2).sum(dim=(0, 1)).sqrt() * noise_scale
             thresh = s.outlier_factor * torch.median(r)
-            scale = torch.where(r > thresh, thresh / r.clamp_min(1e-12), torch.ones_like(r))
-            weights.mul_(scale)
-            return float((1.0 - scale).abs().max()) >= 1e-3
+            return torch.where(r > thresh, thresh / r.clamp_min(1e-12), torch.ones_like(r))
+
+    def reweights(scale: torch.Tensor) -> bool:
+        """Whether ``scale`` (:func:`outlier_scales`) changes some weight (by 1e-3 or more)."""
+        return float((1.0 - scale).abs().max()) >= 1e-3
+
+    def reweight(x: torch.Tensor) -> bool:
+        """Scale down (by threshold / residual) the edges whose noise-scaled residual at
+        ``x`` is above ``s.outlier_factor`` x the median; False if none is."""
+        scale = outlier_scales(x)
+        weights.mul_(scale)
+        return reweights(scale)
 
     if trusted_start and model.reweighting:
         reweight(x)  # a start that is already the answer's neighbourhood: judge by it
@@ -173,9 +189,13 @@ def fit_symmetric_lbfgs(
                 Hn.permute(2, 0, 1).cpu().numpy(), i, j, curvature.cpu().numpy(),
                 4.0 * s.diagonal_weight / delta)
 
-    loss_val, total = float("nan"), 0
-    for rnd in range(s.rounds):
-        round_start, used = x, 0
+    def run(x: torch.Tensor, used: int, loose: bool, loss: float = float("nan")
+            ) -> tuple[torch.Tensor, float, int, bool]:
+        """L-BFGS runs from ``x`` (its ``loss``, where known) until converged or
+        ``s.inner_iterations`` steps (``used`` of them already taken this round): ``(x,
+        loss, used, ended loose)``. With ``loose``, the round also ends, steps left, where a
+        run after its first lowered the loss by less than ``ROUND_LOOSE_FTOL`` (relative)."""
+        runs = 0
         while used < s.inner_iterations:
             # With a preconditioner, a fresh one (and a fresh L-BFGS history) every
             # PRECONDITIONER_STEPS: it holds near the blocks it was built at.
@@ -184,10 +204,28 @@ def fit_symmetric_lbfgs(
             if pre is not None:
                 budget = min(budget, PRECONDITIONER_STEPS)
             res = minimize_lbfgs(loss_and_grad, x, budget, ftol=LBFGS_FTOL, precondition=pre)
-            x, loss_val, used = res.x, res.loss, used + res.iterations
+            before, runs = loss, runs + 1
+            x, loss, used = res.x, res.loss, used + res.iterations
             if res.iterations < budget:
                 break  # converged (or no further progress)
-        moved = float((x - round_start).norm() / x.norm().clamp_min(1e-30))
+            if (loose and runs > 1 and used < s.inner_iterations
+                    and before - loss < ROUND_LOOSE_FTOL * max(abs(loss), 1.0)):
+                return x, loss, used, True
+        return x, loss, used, False
+
+    def moved_from(start: torch.Tensor, x: torch.Tensor) -> float:
+        return float((x - start).norm() / x.norm().clamp_min(1e-30))
+
+    loss_val, total = float("nan"), 0
+    for rnd in range(s.rounds):
+        round_start = x
+        x, loss_val, used, loose = run(x, 0, s.loose_rounds and model.reweighting
+                                       and rnd + 1 < s.rounds)
+        if loose and ((rnd > 0 and moved_from(round_start, x) < ROUND_TOLERANCE)
+                      or not reweights(outlier_scales(x))):
+            # The rounds end here: this one converges as the last one always does.
+            x, loss_val, used, _ = run(x, used, False, loss_val)
+        moved = moved_from(round_start, x)
         total += used
         precondition = precondition and used < s.inner_iterations
         if progress is not None:
