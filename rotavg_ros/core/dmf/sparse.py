@@ -158,15 +158,8 @@ def fit_symmetric_lbfgs(
         """Whether ``scale`` (:func:`outlier_scales`) changes some weight (by 1e-3 or more)."""
         return float((1.0 - scale).abs().max()) >= 1e-3
 
-    def reweight(x: torch.Tensor) -> bool:
-        """Scale down (by threshold / residual) the edges whose noise-scaled residual at
-        ``x`` is above ``s.outlier_factor`` x the median; False if none is."""
-        scale = outlier_scales(x)
-        weights.mul_(scale)
-        return reweights(scale)
-
     if trusted_start and model.reweighting:
-        reweight(x)  # a start that is already the answer's neighbourhood: judge by it
+        weights.mul_(outlier_scales(x))  # a start already near the answer: judge by it
     # The preconditioner's model holds near a solution: from a trusted start, or from a
     # chordal one that shows no outlier (far from the answer, with outliers bending the
     # start, it was slower per step and no faster to converge). A round that does not
@@ -221,10 +214,14 @@ def fit_symmetric_lbfgs(
         round_start = x
         x, loss_val, used, loose = run(x, 0, s.loose_rounds and model.reweighting
                                        and rnd + 1 < s.rounds)
-        if loose and ((rnd > 0 and moved_from(round_start, x) < ROUND_TOLERANCE)
-                      or not reweights(outlier_scales(x))):
-            # The rounds end here: this one converges as the last one always does.
-            x, loss_val, used, _ = run(x, used, False, loss_val)
+        scale: torch.Tensor | None = None  # the edges' outlier scales at x, once taken
+        if loose:
+            scale = outlier_scales(x)
+            if (rnd > 0 and moved_from(round_start, x) < ROUND_TOLERANCE) or not reweights(scale):
+                # The rounds end here: this one converges as the last one always does, and
+                # its scales are taken at the converged fit.
+                x, loss_val, used, _ = run(x, used, False, loss_val)
+                scale = None
         moved = moved_from(round_start, x)
         total += used
         precondition = precondition and used < s.inner_iterations
@@ -232,7 +229,10 @@ def fit_symmetric_lbfgs(
             progress(total, loss_val)
         if not model.reweighting or rnd + 1 == s.rounds or (rnd > 0 and moved < ROUND_TOLERANCE):
             break
-        if not reweight(x):
+        # Scale down (by threshold / residual) the edges above the outlier threshold.
+        scale = outlier_scales(x) if scale is None else scale
+        weights.mul_(scale)
+        if not reweights(scale):
             break  # no edge is an outlier any more: converged
     flat.copy_(x)
     H = chain.product().reshape(num_nodes, 3, 3)
