@@ -294,6 +294,58 @@ def test_sparse_factors_share_one_elimination_order(monkeypatch: pytest.MonkeyPa
     np.testing.assert_allclose(other.solve(b), reference, rtol=1e-8, atol=1e-10)
 
 
+def test_remembered_structure_gives_the_same_ordered_laplacian(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inside ``shared_elimination_order``, ``laplacian_factor`` sums the values into a
+    remembered structure (parallel edges, edges to the anchor and GNC's zero weights
+    included): the matrix is entry for entry the permuted sparse Laplacian, its factor
+    solves the system, the structure is built once per set of edges, and an order of the
+    same graph set again stands (the solver's, around the verification's)."""
+    monkeypatch.setattr(gauss_newton, "DENSE_MAX", 10)  # as if the graph were large
+    rng = np.random.default_rng(8)
+    n = 300
+    i = np.concatenate([np.arange(n - 1), rng.integers(0, n, 50), [3, 3, 3, 0]])
+    j = np.concatenate([np.arange(1, n), rng.integers(0, n, 50), [40, 40, 40, 9]])
+    keep = i != j
+    i, j = np.minimum(i, j)[keep], np.maximum(i, j)[keep]
+    built = []
+    made = gauss_newton.LaplacianPattern.__init__
+
+    def counted(self: gauss_newton.LaplacianPattern, *args: np.ndarray) -> None:
+        built.append(1)
+        made(self, *args)
+
+    monkeypatch.setattr(gauss_newton.LaplacianPattern, "__init__", counted)
+    with gauss_newton.shared_elimination_order(n, i, j):
+        order = gauss_newton.ELIMINATION_ORDER.get()
+        with gauss_newton.shared_elimination_order(n, i.copy(), j.copy()):
+            assert gauss_newton.ELIMINATION_ORDER.get() is order  # the same graph
+        with gauss_newton.shared_elimination_order(n, i[1:], j[1:]):
+            assert gauss_newton.ELIMINATION_ORDER.get() is not order  # another graph
+        assert order is not None
+        for trial in range(3):
+            w = 0.5 + rng.random(i.size)
+            if trial == 2:
+                w[(j - i > 1) & (rng.random(i.size) < 0.3)] = 0.0  # GNC's outliers
+            active = w > 0
+            L, nodes = anchored_laplacian(n, i[active], j[active], w[active])
+            factor = gauss_newton.laplacian_factor(n, i, j, w)
+            assert factor is not None and factor._perm is not None
+            np.testing.assert_array_equal(factor.nodes, nodes)
+            expected = L[factor._perm][:, factor._perm].tocsc()
+            deg, free, a, b, wb = gauss_newton._anchored_edges(n, i[active], j[active],
+                                                               w[active])
+            ordered = order.pattern(free, a, b).matrix(deg[free] + 1e-12, wb)
+            assert (ordered != expected).nnz == 0 and ordered.nnz == expected.nnz
+            expected.sort_indices()
+            np.testing.assert_array_equal(ordered.indptr, expected.indptr)
+            np.testing.assert_array_equal(ordered.indices, expected.indices)
+            np.testing.assert_array_equal(ordered.data, expected.data)
+            rhs = rng.normal(size=(nodes.size, 3))
+            np.testing.assert_allclose(factor.solve(rhs), np.linalg.solve(L.toarray(), rhs),
+                                       rtol=1e-8, atol=1e-10)
+    assert len(built) == 2  # trials 0 and 1 share the edges; trial 2 has fewer
+
 def test_shared_order_takes_supernodes_where_the_graph_fills_in_heavily(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """A 3D lattice's shared order says its factors fill in heavily (SuperLU's supernode

@@ -26,7 +26,11 @@ from rotavg_ros.core.node_sequence import node_sequence
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.class_noise import class_noise
-from rotavg_ros.core.robust.gauss_newton import refine_least_squares, remembered_cg_failures
+from rotavg_ros.core.robust.gauss_newton import (
+    refine_least_squares,
+    remembered_cg_failures,
+    shared_elimination_order,
+)
 from rotavg_ros.core.robust.l1_choice import (
     CAUCHY,
     LEAST_SQUARES,
@@ -262,8 +266,10 @@ class RotationAverager:
         token = NOISE_AXES.set(1 if planar else 3)
         try:
             # (the same edges relaxed twice: solved once; CG's failure on one of the
-            # graph's Laplacians remembered for the whole solve)
-            with reused_relaxations(), remembered_cg_failures(n):
+            # graph's Laplacians remembered for the whole solve; one fill-reducing order
+            # of its nodes for every sparse factorization of the solve)
+            with (reused_relaxations(), remembered_cg_failures(n),
+                  shared_elimination_order(n, i, j)):
                 return self._solve_component(n, i, j, R, w, initial, initial_depth)
         finally:
             NOISE_AXES.reset(token)

@@ -20,6 +20,7 @@ conjugate gradients or SuperLU, by size and connectivity.
 from __future__ import annotations
 
 import threading
+from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -27,7 +28,7 @@ from typing import Any
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, lapack
-from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse import coo_matrix, csc_matrix, csr_matrix
 
 from rotavg_ros.core import so3_soa as soa
 from rotavg_ros.core.sparse_factor import factor_fills_heavily, factor_spd
@@ -105,7 +106,44 @@ def laplacian_factor(n: int, i: IntArray, j: IntArray, w: FloatArray) -> Factor 
                 size * size).astype(np.float64, copy=False).reshape(size, size)
             L[np.arange(size), np.arange(size)] += deg[nodes] + 1e-12
             return Factor.from_dense(L, nodes)
+    order = ELIMINATION_ORDER.get()
+    if order is not None and order.num_nodes == n and not WELL_CONNECTED.get():
+        # In the graph's order from a remembered structure: only the values are summed
+        # (the sparse matrix's assembly and permutation cost as much as a pose graph's
+        # factorization). The same matrix, so the same factor.
+        pattern = order.pattern(nodes, a, b)
+        if not _solves_iteratively(size, pattern.nnz, _route_for(n)):
+            return Factor.from_ordered(pattern.matrix(deg[nodes] + 1e-12, wb), pattern.perm,
+                                       nodes, n, order.supernodes)
     return Factor(_sparse_laplacian(deg, nodes, a, b, wb), nodes, n)
+
+
+class LaplacianPattern:
+    """The sparse structure of the Laplacian of one set of edges (:func:`_anchored_edges`'
+    free nodes and rows ``a``, ``b``) in its graph's :class:`EliminationOrder`: the matrix
+    ``L[perm][:, perm]`` (CSC, sorted rows, parallel edges summed into one entry) is
+    ``matrix(diagonal, weights)`` for any values, by one ``np.bincount``."""
+
+    def __init__(self, rank: IntArray, nodes: IntArray, a: IntArray, b: IntArray) -> None:
+        size = nodes.size
+        self.size = size
+        self.perm: IntArray = np.argsort(rank[nodes], kind="stable")
+        """The free nodes' rows in the order: row ``k`` of the matrix is ``perm[k]``'s."""
+        position = np.empty(size, np.int64)
+        position[self.perm] = np.arange(size)
+        diag = np.arange(size)
+        rows = position[np.concatenate([diag, a, b])]
+        cols = position[np.concatenate([diag, b, a])]
+        entries, self._slot = np.unique(cols * size + rows, return_inverse=True)
+        self._slot = self._slot.reshape(-1)
+        self.nnz = int(entries.size)
+        self._indices = (entries % size).astype(np.int32)
+        self._indptr = np.searchsorted(entries // size, np.arange(size + 1)).astype(np.int32)
+
+    def matrix(self, diagonal: FloatArray, w: FloatArray) -> Any:
+        """The ordered matrix with ``diagonal`` (per free node) and ``-w`` per edge."""
+        data = np.bincount(self._slot, np.concatenate([diagonal, -w, -w]), self.nnz)
+        return csc_matrix((data, self._indices, self._indptr), shape=(self.size, self.size))
 
 
 class EliminationOrder:
@@ -128,6 +166,31 @@ class EliminationOrder:
         self._rank: IntArray | None = None
         self._supernodes = False
         self._lock = threading.Lock()  # the verification's threads share one order
+        self._patterns: OrderedDict[bytes, LaplacianPattern] = OrderedDict()
+
+    def is_of(self, num_nodes: int, i: IntArray, j: IntArray) -> bool:
+        """Whether this is the order of the graph ``(i, j)`` on ``num_nodes`` nodes."""
+        mine_i, mine_j = self._edges
+        return (num_nodes == self.num_nodes and np.array_equal(i, mine_i)
+                and np.array_equal(j, mine_j))
+
+    def pattern(self, nodes: IntArray, a: IntArray, b: IntArray) -> LaplacianPattern:
+        """The :class:`LaplacianPattern` of these free nodes and edge rows, remembered for
+        the last :data:`PATTERNS_KEPT` sets of edges (the fits of one fold, one GNC stage
+        or one IRLS run keep their edges from step to step)."""
+        key = b"".join((np.int64(nodes.size).tobytes(), nodes.tobytes(), a.tobytes(),
+                        b.tobytes()))
+        with self._lock:
+            found = self._patterns.get(key)
+            if found is not None:
+                self._patterns.move_to_end(key)
+                return found
+        made = LaplacianPattern(self.rank, nodes, a, b)
+        with self._lock:
+            self._patterns[key] = made
+            while len(self._patterns) > PATTERNS_KEPT:
+                self._patterns.popitem(last=False)
+        return made
 
     @property
     def rank(self) -> IntArray:
@@ -216,7 +279,13 @@ def remembered_cg_failures(num_nodes: int) -> Iterator[None]:
 def shared_elimination_order(num_nodes: int, i: IntArray, j: IntArray) -> Iterator[None]:
     """Within this block, every sparse factorization of a Laplacian on ``num_nodes`` nodes
     (:class:`Factor` given ``num_nodes``) uses one fill-reducing order of the graph
-    ``(i, j)``, computed at the first, instead of ordering each matrix afresh."""
+    ``(i, j)``, computed at the first, instead of ordering each matrix afresh. Where the
+    current order is that of the same graph already (the solver's, around the
+    verification's own), that one stands, with the structures it remembers."""
+    current = ELIMINATION_ORDER.get()
+    if current is not None and current.is_of(num_nodes, i, j):
+        yield
+        return
     token = ELIMINATION_ORDER.set(EliminationOrder(num_nodes, i, j))
     try:
         yield
@@ -260,12 +329,10 @@ class Factor:
         self._lu = None
         self._matrix: Any = None  # conjugate gradients on this matrix
         size = nodes.size
-        route = CG_ROUTE.get()
-        self._route = route if route is not None and route.num_nodes == num_nodes else None
+        self._route = _route_for(num_nodes)
         if _factor_densely(size, L.nnz):
             self._dense = cho_factor(L.toarray(), lower=True, check_finite=False)
-        elif ((WELL_CONNECTED.get() or L.nnz / size - 1.0 >= ITERATIVE_MIN_DEGREE)
-              and not (self._route is not None and self._route.failed)):
+        elif _solves_iteratively(size, L.nnz, self._route):
             self._matrix = L
             self._inverse_diagonal = 1.0 / L.diagonal()
         else:
@@ -280,6 +347,21 @@ class Factor:
             supernodes = order.supernodes
         self._lu = factor_spd(L, ordered=self._perm is not None, supernodes=supernodes)
         self._matrix = None
+
+    @classmethod
+    def from_ordered(cls, L: Any, perm: IntArray, nodes: IntArray, num_nodes: int,
+                     supernodes: bool) -> Factor:
+        """The sparse factor of ``L``, given in the graph's :class:`EliminationOrder`
+        already: its rows are those of the free ``nodes``' ``perm``."""
+        factor = cls.__new__(cls)
+        factor.nodes = nodes
+        factor._num_nodes = num_nodes
+        factor._perm = perm
+        factor._dense = None
+        factor._matrix = None
+        factor._route = _route_for(num_nodes)
+        factor._lu = factor_spd(L, ordered=True, supernodes=supernodes)
+        return factor
 
     @classmethod
     def from_dense(cls, L: FloatArray, nodes: IntArray) -> Factor:
@@ -334,6 +416,23 @@ class Factor:
         return x
 
 
+def _route_for(num_nodes: int | None) -> ConjugateGradientRoute | None:
+    """The current :class:`ConjugateGradientRoute` where it is that of a graph on
+    ``num_nodes`` nodes."""
+    route = CG_ROUTE.get()
+    return route if route is not None and route.num_nodes == num_nodes else None
+
+
+def _solves_iteratively(size: int, nnz: int, route: ConjugateGradientRoute | None) -> bool:
+    """Whether a sparse Laplacian on ``size`` free nodes with ``nnz`` stored entries is
+    solved by conjugate gradients (:data:`WELL_CONNECTED`, :data:`ITERATIVE_MIN_DEGREE`,
+    unless CG failed on the graph: ``route``)."""
+    return ((WELL_CONNECTED.get() or nnz / size - 1.0 >= ITERATIVE_MIN_DEGREE)
+            and not (route is not None and route.failed))
+
+
+PATTERNS_KEPT = 16
+"""Sets of edges whose :class:`LaplacianPattern` an :class:`EliminationOrder` remembers."""
 DENSE_MAX = 1000
 """Free nodes up to which a Laplacian with more than ``DENSE_FILL`` of its entries set is
 solved densely (Cholesky, 8 MB at most): random view graphs fill SuperLU's factors almost
