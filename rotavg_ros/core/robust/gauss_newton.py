@@ -349,30 +349,32 @@ class Factor:
         self._matrix = None
 
     @classmethod
+    def _unset(cls, nodes: IntArray, num_nodes: int | None) -> Factor:
+        """A factor on the free ``nodes`` with no solver set yet (for the constructors)."""
+        factor = cls.__new__(cls)
+        factor.nodes = nodes
+        factor._num_nodes = num_nodes
+        factor._perm = None
+        factor._dense = None
+        factor._lu = None
+        factor._matrix = None
+        factor._route = _route_for(num_nodes)
+        return factor
+
+    @classmethod
     def from_ordered(cls, L: Any, perm: IntArray, nodes: IntArray, num_nodes: int,
                      supernodes: bool) -> Factor:
         """The sparse factor of ``L``, given in the graph's :class:`EliminationOrder`
         already: its rows are those of the free ``nodes``' ``perm``."""
-        factor = cls.__new__(cls)
-        factor.nodes = nodes
-        factor._num_nodes = num_nodes
+        factor = cls._unset(nodes, num_nodes)
         factor._perm = perm
-        factor._dense = None
-        factor._matrix = None
-        factor._route = _route_for(num_nodes)
         factor._lu = factor_spd(L, ordered=True, supernodes=supernodes)
         return factor
 
     @classmethod
     def from_dense(cls, L: FloatArray, nodes: IntArray) -> Factor:
         """The dense Cholesky factor of ``L`` (a dense array) on the free ``nodes``."""
-        factor = cls.__new__(cls)
-        factor.nodes = nodes
-        factor._num_nodes = None
-        factor._perm = None
-        factor._lu = None
-        factor._matrix = None
-        factor._route = None
+        factor = cls._unset(nodes, None)
         factor._dense = cho_factor(L, lower=True, check_finite=False)
         return factor
 
