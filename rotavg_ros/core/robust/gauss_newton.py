@@ -134,8 +134,8 @@ class LaplacianPattern:
         diag = np.arange(size)
         rows = position[np.concatenate([diag, a, b])]
         cols = position[np.concatenate([diag, b, a])]
-        entries, self._slot = np.unique(cols * size + rows, return_inverse=True)
-        self._slot = self._slot.reshape(-1)
+        entries, slot = np.unique(cols * size + rows, return_inverse=True)
+        self._slot: IntArray = slot.reshape(-1)  # each diagonal and edge entry's place
         self.nnz = int(entries.size)
         self._indices = (entries % size).astype(np.int32)
         self._indptr = np.searchsorted(entries // size, np.arange(size + 1)).astype(np.int32)
@@ -434,7 +434,8 @@ def _solves_iteratively(size: int, nnz: int, route: ConjugateGradientRoute | Non
 
 
 PATTERNS_KEPT = 16
-"""Sets of edges whose :class:`LaplacianPattern` an :class:`EliminationOrder` remembers."""
+"""Sets of edges whose :class:`LaplacianPattern` an :class:`EliminationOrder` remembers
+(with its key, about 1 MB each on City10000's 10,000 nodes and 20,687 edges)."""
 DENSE_MAX = 1000
 """Free nodes up to which a Laplacian with more than ``DENSE_FILL`` of its entries set is
 solved densely (Cholesky, 8 MB at most): random view graphs fill SuperLU's factors almost
