@@ -110,7 +110,8 @@ def laplacian_factor(n: int, i: IntArray, j: IntArray, w: FloatArray) -> Factor 
     if order is not None and order.num_nodes == n and not WELL_CONNECTED.get():
         # In the graph's order from a remembered structure: only the values are summed
         # (the sparse matrix's assembly and permutation cost as much as a pose graph's
-        # factorization). The same matrix, so the same factor.
+        # factorization). The same matrix, so the same factor. (A well-connected graph's
+        # Laplacians go to conjugate gradients unpermuted: no structure is built for them.)
         pattern = order.pattern(nodes, a, b)
         if not _solves_iteratively(size, pattern.nnz, _route_for(n)):
             return Factor.from_ordered(pattern.matrix(deg[nodes] + 1e-12, wb), pattern.perm,
