@@ -34,11 +34,13 @@ from rotavg_ros.core.robust.l1_choice import (
     L1,
     LEAST_SQUARES,
     MIN_SCALE,
+    TIE_QUANTILES,
     choose_by_cross_validation,
     decided_early,
     fold_plan,
     huber_fit,
     l1_fit,
+    tie,
 )
 from rotavg_ros.core.robust.noise import (
     GAUSSIAN_SHAPE,
@@ -57,7 +59,13 @@ from rotavg_ros.core.robust.verify import (
     truncated_l1,
     verify,
 )
-from rotavg_ros.core.so3 import exp_map, log_map, random_rotations, rotation_angle
+from rotavg_ros.core.so3 import (
+    exp_map,
+    geodesic_midpoint,
+    log_map,
+    random_rotations,
+    rotation_angle,
+)
 from rotavg_ros.core.solver import ArraySolution, average_rotations
 from rotavg_ros.core.sparse_factor import factor_spd
 
@@ -1131,6 +1139,82 @@ def test_cross_validation_stops_early_only_on_a_clear_sign() -> None:
     assert not decided_early([-0.02] * 4)  # no spread: no t, all folds run
 
 
+def test_tie_quantiles_are_students_t_at_95_percent_two_sided() -> None:
+    from scipy import stats
+
+    expected = [stats.t.ppf(0.975, k - 1) for k in range(3, 3 + len(TIE_QUANTILES))]
+    assert np.allclose(TIE_QUANTILES, expected, atol=1e-3)
+
+
+def test_a_tie_is_a_sign_in_doubt_after_every_fold() -> None:
+    assert tie([-0.03, 0.01, -0.05, 0.02, -0.04, 0.01, -0.02, 0.03, -0.06, 0.0])  # t = -1.1
+    assert not tie([-0.03, -0.02, -0.05, -0.02, -0.04, -0.01, -0.02, -0.03, -0.06, -0.01])
+    assert not tie([-0.03, 0.01])  # fewer than three folds: no t to judge
+    assert not tie([-0.02] * 10)  # no spread: no t
+
+
+def test_halfway_on_a_tie_is_the_midpoint_of_the_fit_and_least_squares() -> None:
+    """Where the alternative wins but the folds tie, the answer is the geodesic midpoint of
+    its fit and least squares' optimum, whether the given solution is least squares or a
+    pose graph's robust fit (which Huber's fit replaces). Not where least squares wins, nor
+    where a view graph's robust fit stands, nor with the option off."""
+    rng = np.random.default_rng(0)
+    i, j, R, truth = _noisy_graph(80, True, rng)
+    w = np.ones(i.size)
+    ls = gauss_newton.refine_least_squares(truth, i, j, R, w, iterations=30)
+    off = np.einsum("nab,nbc->nac", exp_map(rng.normal(0.0, 0.02, (80, 3))), ls)
+    with mock.patch("rotavg_ros.core.robust.l1_choice.decided_early", return_value=False), \
+            mock.patch("rotavg_ros.core.robust.l1_choice.tie", return_value=True):
+        plain = choose_by_cross_validation(ls, i, j, R, w)
+        halfway = choose_by_cross_validation(ls, i, j, R, w, halfway_where_tied=True)
+        pose = [choose_by_cross_validation(off, i, j, R, w, robust_l1_stands=False,
+                                           halfway_where_tied=on) for on in (False, True)]
+        view = choose_by_cross_validation(off, i, j, R, w, halfway_where_tied=True)
+    assert plain.estimator == halfway.estimator == L1 and plain.folds_run == 10
+    assert not plain.halfway and halfway.halfway and halfway.replaced
+    assert halfway.fitted == L1 and halfway.held_out_t == plain.held_out_t < 0.0
+    optimum = gauss_newton.refine_least_squares(ls, i, j, R, w, iterations=20)  # (its own)
+    assert np.allclose(halfway.rotations, geodesic_midpoint(plain.rotations, optimum),
+                       atol=1e-12)
+    gap = rotation_angle(np.einsum("nab,ncb->nac", plain.rotations, optimum))
+    assert gap.max() > 1e-3  # (the two fits differ)
+    assert np.allclose(rotation_angle(np.einsum("nab,ncb->nac", halfway.rotations, optimum)),
+                       gap / 2.0, atol=1e-9)
+    optimum = gauss_newton.refine_least_squares(off, i, j, R, w, iterations=20)
+    assert pose[0].fitted == pose[1].fitted == HUBER and pose[1].halfway
+    assert np.allclose(pose[1].rotations, geodesic_midpoint(pose[0].rotations, optimum),
+                       atol=1e-12)
+    assert not view.replaced and not view.halfway and view.rotations is off
+    gaussian = _noisy_graph(80, False, np.random.default_rng(0))
+    ls_g = gauss_newton.refine_least_squares(gaussian[3], *gaussian[:3], w, iterations=30)
+    with mock.patch("rotavg_ros.core.robust.l1_choice.tie", return_value=True):
+        verdict = choose_by_cross_validation(ls_g, *gaussian[:3], w, halfway_where_tied=True)
+    assert verdict.estimator == LEAST_SQUARES and not verdict.halfway
+
+
+def test_the_solver_goes_halfway_where_the_folds_tie() -> None:
+    """A clean 5^3 lattice (smallGrid3D's topology) under anisotropic noise at 5 deg, one of
+    12 draws where the folds lean to L1 without deciding: the L1 fit 14% above the chordal
+    relaxation's median error, the midpoint 7% (``halfway_where_tied``)."""
+    from benchmarks import regime_cases as rc
+
+    case = rc.lattice_case("test/lattice", 5, noise_deg=5.0, seed=10,
+                           noise_model="anisotropic")
+    w = np.ones(case.i.size)
+    median = {}
+    for on in (False, True):
+        said: list[str] = []
+        sol = average_rotations(case.num_nodes, case.i, case.j, case.R, w,
+                                SolverOptions.for_profile("default", seed=0,
+                                                          progress=said.append,
+                                                          halfway_where_tied=on))
+        assert sol.verification == ("dmf_refit+l1-halfway" if on else "dmf_refit+l1")
+        assert any("halfway between its fit and least squares" in m for m in said) == on
+        median[on] = evaluate(dict(enumerate(sol.rotations)),
+                              dict(enumerate(case.gt))).median_deg
+    assert median[True] < 0.97 * median[False]
+
+
 @pytest.mark.parametrize("peaked", [True, False])
 def test_cross_validation_stopped_early_keeps_the_verdict_of_all_folds(peaked: bool) -> None:
     rng = np.random.default_rng(3)
@@ -1362,7 +1446,8 @@ def test_hubers_fit_in_l1s_place_where_the_weights_differ() -> None:
         for on in (True, False):
             sol = average_rotations(case.num_nodes, case.i, case.j, case.R, case.weight,
                                     SolverOptions.for_profile(
-                                        "default", seed=0, huber_where_weights_differ=on))
+                                        "default", seed=0, huber_where_weights_differ=on,
+                                        halfway_where_tied=False))  # (each fit itself)
             assert sol.verification == ("dmf+huber" if on else "dmf+l1")
             median[on] = evaluate(dict(enumerate(sol.rotations)),
                                   dict(enumerate(case.gt))).median_deg

@@ -78,7 +78,8 @@ class SolveResult:
     won the choice and a DMF fitted on its inliers replaced it), ``failed`` (the
     verification raised; the DMF solution stands) or empty (``paper`` profile); with
     ``+ls``, ``+l1``, ``+huber`` or ``+cauchy`` where the cross-validation's fit of the
-    inliers replaced the kept solution."""
+    inliers replaced the kept solution (``+l1-halfway``, ``+huber-halfway``: the folds tied,
+    and the answer is halfway between that fit and least squares')."""
     pruned_depths: tuple[int, ...] = ()
     """Depth candidates the candidate race stopped early (largest component; option
     ``prune_ratio``): never chosen; their ``cost_by_depth`` is of the unfinished fit and

@@ -120,6 +120,15 @@ def geodesic_distance(A: ArrayLike, B: ArrayLike) -> FloatArray:
     return np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
 
 
+def geodesic_midpoint(A: ArrayLike, B: ArrayLike) -> FloatArray:
+    """The rotation halfway along the geodesic from ``B`` to ``A``, ``exp(log(A B^T) / 2) B``
+    (each pair of a stack; the same point from either end, the metric being bi-invariant;
+    for two rotations less than pi apart, the one nearest both)."""
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    return exp_map(0.5 * log_map(A @ np.swapaxes(B, -1, -2))) @ B
+
+
 def chordal_distance(A: ArrayLike, B: ArrayLike) -> FloatArray:
     """Frobenius distance ``||A - B||_F``."""
     diff = np.asarray(A, dtype=np.float64) - np.asarray(B, dtype=np.float64)

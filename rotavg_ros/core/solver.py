@@ -583,7 +583,8 @@ class RotationAverager:
         """Least squares, L1, Huber or Cauchy on the ``inlier`` edges, chosen by cross-validation
         (:func:`~.robust.l1_choice.choose_by_cross_validation`, ``tree`` kept in every
         fold where the folds would split the graph): ``(rotations, the estimator whose fit
-        replaced rot, "ls", "l1", "huber" or "cauchy"; "" where rot stands)``."""
+        replaced rot, "ls", "l1", "huber" or "cauchy", with "-halfway" where the answer is the
+        midpoint of that fit and least squares' on a tie; "" where rot stands)``."""
         opt = self.options
         verdict = choose_by_cross_validation(
             rot, i[inlier], j[inlier], R[inlier], w[inlier], seed=opt.runtime.seed,
@@ -592,7 +593,8 @@ class RotationAverager:
             robust_l1_stands=not (opt.verify.l1_over_robust_with_odometry
                                   and bool(odometry.any())),
             huber_for_l1=opt.verify.huber_where_weights_differ and _weights_differ(w[inlier]),
-            heavy_tails=opt.verify.cauchy_where_decided)
+            heavy_tails=opt.verify.cauchy_where_decided,
+            halfway_where_tied=opt.verify.halfway_where_tied)
         swapped = verdict.replaced and verdict.fitted != verdict.estimator
         robust_fate = ("; the kept robust fit stands"
                        if verdict.robust_given and not verdict.replaced
@@ -607,11 +609,15 @@ class RotationAverager:
                   f"{verdict.folds_run} folds"
                   f"{', a spanning tree in every fold' if verdict.tree_kept else ''}"
                   f"{robust_fate}"
+                  f"{_halfway_said(verdict)}"
                   f"{_heavier_tails_said(verdict)})")
         if not verdict.replaced:  # the kept solution stands as it is
             return rot, ""
-        # The alternative's fit, or least squares' optimum in a robust fit's place.
-        return verdict.rotations, ("ls" if verdict.fitted == LEAST_SQUARES
+        # The alternative's fit (or halfway to it on a tie), or least squares' optimum in
+        # a robust fit's place.
+        if verdict.fitted == LEAST_SQUARES:
+            return verdict.rotations, "ls"
+        return verdict.rotations, (f"{verdict.fitted}-halfway" if verdict.halfway
                                    else verdict.fitted)
 
     def _robust_first(
@@ -771,6 +777,14 @@ class RotationAverager:
     def _say(self, text: str) -> None:
         if self.options.runtime.progress is not None:
             self.options.runtime.progress(text)
+
+
+def _halfway_said(verdict: EstimatorVerdict) -> str:
+    """The tie's words for the progress line ("" where the folds did not tie)."""
+    if not verdict.halfway:
+        return ""
+    return (f"; a tie (t {verdict.held_out_t:+.2f}): halfway between its fit and least "
+            "squares")
 
 
 def _heavier_tails_said(verdict: EstimatorVerdict) -> str:
