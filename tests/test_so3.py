@@ -10,6 +10,7 @@ from rotavg_ros.core.so3 import (
     chord_from_angle,
     chordal_distance,
     geodesic_distance,
+    geodesic_midpoint,
     matrix_to_quat,
     project_to_so3,
     quat_to_matrix,
@@ -197,3 +198,15 @@ def test_structure_of_arrays_maps_agree_with_the_stacked_ones() -> None:
     out = soa.from_soa(soa.renormalize(soa.to_soa(M)))
     np.testing.assert_allclose(out, renormalize(M), atol=1e-14)
     assert _is_rotation(out)
+
+
+def test_geodesic_midpoint_is_halfway_from_either_end() -> None:
+    rng = np.random.default_rng(4)
+    A, B = random_rotations(50, rng), random_rotations(50, rng)
+    M = geodesic_midpoint(A, B)
+    gap = geodesic_distance(A, B)
+    assert np.allclose(geodesic_distance(M, A), gap / 2.0, atol=1e-9)
+    assert np.allclose(geodesic_distance(M, B), gap / 2.0, atol=1e-9)
+    assert np.allclose(geodesic_midpoint(B, A), M, atol=1e-9)  # the same from either end
+    assert np.allclose(np.einsum("nab,nac->nbc", M, M), np.eye(3), atol=1e-12)
+    assert np.allclose(geodesic_midpoint(A, A), A, atol=1e-12)
