@@ -350,8 +350,8 @@ class VerifyOptions:
     clean smallGrid3D draws (5 and 10 deg, three noise models) it acted on 21: medians
     more than 5% above GTSAM chordal's 4 -> 0 (the L1 fit up to 1.11x, the midpoint up to
     1.02x), folded noise's 9 ties 3% above L1's fit at the geometric mean, still below
-    chordal's; over five record and five stress draws 32 medians moved, 20 lower, 12
-    higher by at most 4.8% (docs/benchmarks.md, "Halfway where the folds tie"). Off: the
+    chordal's; over six record and six stress draws 38 medians moved, 23 lower, 15
+    higher by at most 5.6% (docs/benchmarks.md, "Halfway where the folds tie"). Off: the
     alternative's fit, as until 2026-12-07."""
     l1_max_nodes: int = field(default=10000, metadata=_flat("l1_max_nodes"))
     """Largest graph that ``l1_by_cross_validation`` runs on. It costs 100-320 Gauss-Newton
