@@ -75,6 +75,8 @@ def diagnostic_values(
             "odometry_weight": result.odometry_weight,
             "odometry_bias_deg_per_step": result.odometry_bias_deg_per_step,
             "untested_loop_closures": result.num_untested,
+            "parallel_measurements_set_aside": result.num_parallel_set_aside,
+            "parallel_pairs_undecided": result.num_parallel_undecided,
             "depth": result.depth,
             "residual_median_deg": median,
             "residual_mean_deg": float(np.mean(inlier)) if inlier.size else math.nan,
@@ -94,6 +96,11 @@ def diagnostic_values(
         if result.num_untested:
             level = Level.WARN
             problems.append(f"{result.num_untested} loop closure(s) could not be tested")
+        if result.num_parallel_undecided:
+            level = Level.WARN
+            problems.append(f"{result.num_parallel_undecided} node pair(s) measured with "
+                            "rotations that disagree, which the solution could not settle: "
+                            "their merged edge stands")
         closures, left_out = loop_closures_left_out(result)
         values["loop_closures_left_out"] = f"{left_out} / {closures}"
         if closures >= MIN_CLOSURES_TO_WARN and left_out > settings.left_out_warn_share * closures:

@@ -342,6 +342,13 @@ class VerifyOptions:
     tangent, but that graph), City10000 regenerated and the new-user chains the same
     (docs/benchmarks.md, "Cauchy where the folds decide for it"). Off: as until
     2026-12-07."""
+    settle_parallel: bool = field(default=True, metadata=_flat("settle_parallel"))
+    """Where a node pair is measured more than once and its measurements disagree (the view
+    graph's ``merge`` policy averages them into one edge between them): after the solve,
+    set aside those that disagree with the solution where others of the pair agree, and
+    solve again (:mod:`~rotavg_ros.core.robust.parallel_measurements`; a front end that
+    sends two hypotheses for one pair). No cost where no pair's measurements disagree.
+    Off: the merged edge stands, as until 2026-12-08."""
     halfway_where_tied: bool = field(default=True, metadata=_flat("halfway_where_tied"))
     """Where ``l1_by_cross_validation``'s verdict is the alternative (L1 or Huber) but all
     ten folds ran and their t statistic stays inside Student's two-sided 95% band (a tie,

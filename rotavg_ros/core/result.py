@@ -94,6 +94,16 @@ class SolveResult:
     removed from the odometry before the solve (largest component; option
     ``odometry_bias``, :mod:`rotavg_ros.core.robust.odometry_bias`); 0 where none was.
     ``residuals_deg`` are against the measurements as given, bias included."""
+    num_parallel_set_aside: int = 0
+    """Measurements of a node pair measured more than once that disagreed with the solution
+    where the pair's other measurements agreed: set aside, the pair's edge merged again from
+    the rest, and solved again (option ``settle_parallel``,
+    :mod:`rotavg_ros.core.robust.parallel_measurements`). ``residuals_deg`` and
+    ``edge_inlier`` are then those of the edges solved: one per pair, as before."""
+    num_parallel_undecided: int = 0
+    """Node pairs measured more than once with rotations that disagree with each other which
+    the solution could not settle (none agrees with it, or only the pair's own edge joins
+    its ends): their edge stays the merged one, a median between them."""
 
 
 def components_warning(result: SolveResult) -> str | None:

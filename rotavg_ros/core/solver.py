@@ -40,6 +40,7 @@ from rotavg_ros.core.robust.l1_choice import (
 )
 from rotavg_ros.core.robust.noise import NOISE_AXES, noise_axes, redundancy
 from rotavg_ros.core.robust.odometry_bias import estimate_odometry_bias, remove_odometry_bias
+from rotavg_ros.core.robust.parallel_measurements import settle_parallel
 from rotavg_ros.core.robust.verify import (
     GNC_SIGMAS,
     RobustSolve,
@@ -56,7 +57,7 @@ from rotavg_ros.core.robust.verify import (
 from rotavg_ros.core.so3 import chordal_distance, geodesic_distance, project_to_so3
 from rotavg_ros.core.threads import verify_workers
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
-from rotavg_ros.core.view_graph import ViewGraph
+from rotavg_ros.core.view_graph import EdgeArrays, RepeatPolicy, ViewGraph, consolidate
 
 
 @dataclass
@@ -162,6 +163,11 @@ kept unless its choice cost is more than this (relative) above the first fit's: 
 refit failed, not a difference between two fits of the same inliers."""
 
 
+PARALLEL_ROUNDS = 1
+"""Solves after the first at most, each on the parallel measurements the last one's
+solution settled (:mod:`.robust.parallel_measurements`; option ``settle_parallel``)."""
+
+
 class RotationAverager:
     """The paper's pipeline: filter -> DMF at each candidate depth -> pick -> project."""
 
@@ -206,6 +212,40 @@ class RotationAverager:
             for k, node_id in enumerate(ids):
                 if node_id in initial:
                     init[k] = initial[node_id]
+        result = self._solve_edges(graph, edges, anchor_idx, init, initial_depth)
+        if not (self.options.verify.enabled and self.options.verify.settle_parallel
+                and graph.repeat_policy is RepeatPolicy.MERGE
+                and graph.num_measurements > edges.num_edges):
+            return result
+        # Pairs measured more than once whose measurements disagree: judged against the
+        # solution, every measurement each round (one set aside may come back), solved
+        # again while the verdict changes (at most PARALLEL_ROUNDS solves after the first).
+        mi, mj, mR, mw = graph.measurement_arrays()
+        keep = np.ones(mi.size, bool)
+        verdict = None
+        for _ in range(PARALLEL_ROUNDS):
+            verdict = settle_parallel(graph.num_nodes, mi, mj, mR, mw, edges.i, edges.j,
+                                      edges.R, edges.weight, result.edge_inlier,
+                                      result.rotations, math.radians(result.noise_sigma_deg))
+            if verdict is None or np.array_equal(verdict.keep, keep):
+                break
+            keep = verdict.keep
+            self._say(f"parallel measurements: {verdict.set_aside} set aside (their pair's "
+                      "other measurements agree with the solution); solving again")
+            edges = consolidate(mi[keep], mj[keep], mR[keep], mw[keep], RepeatPolicy.MERGE)
+            result = self._solve_edges(graph, edges, anchor_idx, init, initial_depth)
+        if verdict is None:
+            return result
+        return replace(result, num_parallel_set_aside=int((~keep).sum()),
+                       num_parallel_undecided=verdict.undecided)
+
+    def _solve_edges(
+        self, graph: ViewGraph, edges: EdgeArrays, anchor_idx: int,
+        init: FloatArray | None, initial_depth: int | None,
+    ) -> SolveResult:
+        """:meth:`solve` on ``edges``, the graph's edges (one per pair, as
+        :meth:`~.view_graph.ViewGraph.edge_arrays` orders them)."""
+        ids = graph.node_ids
         out = average_rotations(
             graph.num_nodes, edges.i, edges.j, edges.R, edges.weight, self.options,
             anchor=anchor_idx, initial=init, initial_depth=initial_depth,

@@ -1,0 +1,93 @@
+"""Parallel measurements of one node pair that disagree (``core.robust.parallel_measurements``,
+option ``settle_parallel``): a false twin of a true edge set aside, true twins merged as
+before, a pair the solution cannot judge counted and warned about."""
+
+from __future__ import annotations
+
+import numpy as np
+from rotavg_ros.msg_adapters.outputs import Level
+
+from benchmarks import regime_cases as rc
+from rotavg_ros.app.accumulator import AccumulatorStats
+from rotavg_ros.app.diagnostics import diagnostic_values
+from rotavg_ros.app.parameters import settings_from_parameters
+from rotavg_ros.app.session import SolveBookkeeping
+from rotavg_ros.core.metrics import evaluate
+from rotavg_ros.core.options import SolverOptions
+from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.solver import RotationAverager
+from rotavg_ros.core.types import FloatArray, IntArray
+from rotavg_ros.core.view_graph import ViewGraph
+
+
+def _solve(case: rc.RegimeCase, i: IntArray, j: IntArray, R: FloatArray,
+           settle: bool = True) -> tuple[SolveResult, float]:
+    g = ViewGraph()
+    for k in range(case.num_nodes):
+        g.add_node(k)
+    g.add_edges(i.tolist(), j.tolist(), R)
+    res = RotationAverager(SolverOptions.for_profile("default", seed=0,
+                                                     settle_parallel=settle)).solve(g)
+    return res, evaluate(dict(enumerate(res.rotations)), dict(enumerate(case.gt))).median_deg
+
+
+def _lattice_with_twins(true_twins: bool) -> tuple[rc.RegimeCase, IntArray, IntArray,
+                                                   FloatArray, int]:
+    """A clean 5^3 lattice pose graph; a third of its loop closures sent a second time,
+    as a false rotation (or a true one with fresh noise), after every first measurement."""
+    case = rc.lattice_case("test/lattice/twins", 5, noise_deg=1.0, seed=3)
+    rng = np.random.default_rng(5)
+    loops = np.flatnonzero(np.abs(case.i - case.j) != 1)
+    pick = rng.choice(loops, loops.size // 3, replace=False)
+    truth = rc.relative(np.asarray(case.gt), case.i[pick], case.j[pick])
+    twins = (rc.perturb(truth, 1.0, rng) if true_twins else rc.false_rotations(truth, rng))
+    return (case, np.r_[case.i, case.i[pick]], np.r_[case.j, case.j[pick]],
+            np.concatenate([case.R, twins]), pick.size)
+
+
+def test_a_false_twin_of_a_loop_closure_is_set_aside() -> None:
+    # Merged, each false twin drags its pair's edge halfway to a random rotation: the
+    # verification rejects it, and the true measurement goes with it. Settled, each pair's
+    # edge is its true measurement again: the solve as if the twins had never come.
+    case, i, j, R, twins = _lattice_with_twins(true_twins=False)
+    _, alone = _solve(case, case.i, case.j, case.R)
+    merged, merged_median = _solve(case, i, j, R, settle=False)
+    settled, settled_median = _solve(case, i, j, R)
+    assert merged.num_parallel_set_aside == 0 and merged_median > 1.05 * alone
+    assert settled.num_parallel_set_aside == twins and settled.num_parallel_undecided == 0
+    assert abs(settled_median - alone) <= 0.01 * alone
+
+
+def test_true_twins_are_merged_as_before() -> None:
+    case, i, j, R, _ = _lattice_with_twins(true_twins=True)
+    merged, merged_median = _solve(case, i, j, R, settle=False)
+    settled, settled_median = _solve(case, i, j, R)
+    assert settled.num_parallel_set_aside == 0 and settled.num_parallel_undecided == 0
+    assert settled_median == merged_median
+    np.testing.assert_array_equal(settled.rotations, merged.rotations)
+
+
+def test_a_bridge_measured_two_ways_is_undecided_and_warns() -> None:
+    # A tail of 20 keyframes hangs by one odometry step, sent twice, 60 deg apart: every
+    # rotation of the step fits it exactly, so the solution cannot tell the two apart.
+    case = rc.lattice_case("test/lattice/tail", 4, noise_deg=1.0, seed=1)
+    n0 = case.num_nodes
+    rng = np.random.default_rng(2)
+    tail = rc.chain_trajectory(20, rng)
+    gt = np.concatenate([np.asarray(case.gt), tail @ np.asarray(case.gt)[-1]])
+    ti, tj = np.arange(n0 - 1, n0 + 19), np.arange(n0, n0 + 20)
+    tR = rc.perturb(rc.relative(gt, ti, tj), 1.0, rng)
+    wrong = tR[:1] @ rc.rotation_about_axis(np.array([[1.0, 0.0, 0.0]]), np.radians([60.0]))
+    i, j = np.r_[case.i, ti, ti[:1]], np.r_[case.j, tj, tj[:1]]
+    R = np.concatenate([case.R, tR, wrong])
+    full = rc.RegimeCase("test/lattice/tail", "slam", n0 + 20, i, j, R, gt, None, None,
+                         1.0, "", 1.0)
+    res, _ = _solve(full, i, j, R)
+    assert res.num_parallel_undecided == 1 and res.num_parallel_set_aside == 0
+    stats = AccumulatorStats(received=i.size, accepted=i.size, rejected={}, notes={},
+                             num_nodes=full.num_nodes, num_measurements=i.size, version=1,
+                             generation=0)
+    level, message, values = diagnostic_values(stats, SolveBookkeeping(last_result=res),
+                                               settings_from_parameters({}))
+    assert values["parallel_pairs_undecided"] == 1
+    assert level == Level.WARN and "could not settle" in message
