@@ -163,11 +163,6 @@ kept unless its choice cost is more than this (relative) above the first fit's: 
 refit failed, not a difference between two fits of the same inliers."""
 
 
-PARALLEL_ROUNDS = 1
-"""Solves after the first at most, each on the parallel measurements the last one's
-solution settled (:mod:`.robust.parallel_measurements`; option ``settle_parallel``)."""
-
-
 class RotationAverager:
     """The paper's pipeline: filter -> DMF at each candidate depth -> pick -> project."""
 
@@ -217,26 +212,22 @@ class RotationAverager:
                 and graph.repeat_policy is RepeatPolicy.MERGE
                 and graph.num_measurements > edges.num_edges):
             return result
-        # Pairs measured more than once whose measurements disagree: judged against the
-        # solution, every measurement each round (one set aside may come back), solved
-        # again while the verdict changes (at most PARALLEL_ROUNDS solves after the first).
+        # Pairs measured more than once whose measurements disagree, judged against the
+        # solution: where some agree with it and others not, the others are set aside and
+        # the graph is solved once more (docs/method.md: one round).
         mi, mj, mR, mw = graph.measurement_arrays()
-        keep = np.ones(mi.size, bool)
-        verdict = None
-        for _ in range(PARALLEL_ROUNDS):
-            verdict = settle_parallel(graph.num_nodes, mi, mj, mR, mw, edges.i, edges.j,
-                                      edges.R, edges.weight, result.edge_inlier,
-                                      result.rotations, math.radians(result.noise_sigma_deg))
-            if verdict is None or np.array_equal(verdict.keep, keep):
-                break
-            keep = verdict.keep
-            self._say(f"parallel measurements: {verdict.set_aside} set aside (their pair's "
-                      "other measurements agree with the solution); solving again")
-            edges = consolidate(mi[keep], mj[keep], mR[keep], mw[keep], RepeatPolicy.MERGE)
-            result = self._solve_edges(graph, edges, anchor_idx, init, initial_depth)
+        verdict = settle_parallel(graph.num_nodes, mi, mj, mR, mw, edges.i, edges.j, edges.R,
+                                  edges.weight, result.edge_inlier, result.rotations,
+                                  math.radians(result.noise_sigma_deg))
         if verdict is None:
             return result
-        return replace(result, num_parallel_set_aside=int((~keep).sum()),
+        if verdict.set_aside:
+            self._say(f"parallel measurements: {verdict.set_aside} set aside (their pair's "
+                      "other measurements agree with the solution); solving again")
+            keep = verdict.keep
+            edges = consolidate(mi[keep], mj[keep], mR[keep], mw[keep], RepeatPolicy.MERGE)
+            result = self._solve_edges(graph, edges, anchor_idx, init, initial_depth)
+        return replace(result, num_parallel_set_aside=verdict.set_aside,
                        num_parallel_undecided=verdict.undecided)
 
     def _solve_edges(
