@@ -4,6 +4,8 @@ before, a pair the solution cannot judge counted and warned about."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from rotavg_ros.msg_adapters.outputs import Level
 
@@ -12,9 +14,11 @@ from rotavg_ros.app.accumulator import AccumulatorStats
 from rotavg_ros.app.diagnostics import diagnostic_values
 from rotavg_ros.app.parameters import settings_from_parameters
 from rotavg_ros.app.session import SolveBookkeeping
+from rotavg_ros.cli import main
 from rotavg_ros.core.metrics import evaluate
 from rotavg_ros.core.options import SolverOptions
-from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.result import SolveResult, parallel_warning
+from rotavg_ros.core.so3 import matrix_to_quat
 from rotavg_ros.core.solver import RotationAverager
 from rotavg_ros.core.types import FloatArray, IntArray
 from rotavg_ros.core.view_graph import ViewGraph
@@ -67,9 +71,9 @@ def test_true_twins_are_merged_as_before() -> None:
     np.testing.assert_array_equal(settled.rotations, merged.rotations)
 
 
-def test_a_bridge_measured_two_ways_is_undecided_and_warns() -> None:
-    # A tail of 20 keyframes hangs by one odometry step, sent twice, 60 deg apart: every
-    # rotation of the step fits it exactly, so the solution cannot tell the two apart.
+def _tail_hung_by_a_step_sent_two_ways() -> rc.RegimeCase:
+    """A tail of 20 keyframes that hangs by one odometry step, sent twice, 60 deg apart:
+    every rotation of the step fits it exactly, so no solution can tell the two apart."""
     case = rc.lattice_case("test/lattice/tail", 4, noise_deg=1.0, seed=1)
     n0 = case.num_nodes
     rng = np.random.default_rng(2)
@@ -80,14 +84,29 @@ def test_a_bridge_measured_two_ways_is_undecided_and_warns() -> None:
     wrong = tR[:1] @ rc.rotation_about_axis(np.array([[1.0, 0.0, 0.0]]), np.radians([60.0]))
     i, j = np.r_[case.i, ti, ti[:1]], np.r_[case.j, tj, tj[:1]]
     R = np.concatenate([case.R, tR, wrong])
-    full = rc.RegimeCase("test/lattice/tail", "slam", n0 + 20, i, j, R, gt, None, None,
-                         1.0, "", 1.0)
-    res, _ = _solve(full, i, j, R)
+    return rc.RegimeCase("test/lattice/tail", "slam", n0 + 20, i, j, R, gt, None, None, 1.0,
+                         "", 1.0)
+
+
+def test_a_bridge_measured_two_ways_is_undecided_and_warns() -> None:
+    case = _tail_hung_by_a_step_sent_two_ways()
+    res, _ = _solve(case, case.i, case.j, case.R)
     assert res.num_parallel_undecided == 1 and res.num_parallel_set_aside == 0
-    stats = AccumulatorStats(received=i.size, accepted=i.size, rejected={}, notes={},
-                             num_nodes=full.num_nodes, num_measurements=i.size, version=1,
-                             generation=0)
+    stats = AccumulatorStats(received=case.num_edges, accepted=case.num_edges, rejected={},
+                             notes={}, num_nodes=case.num_nodes,
+                             num_measurements=case.num_edges, version=1, generation=0)
     level, message, values = diagnostic_values(stats, SolveBookkeeping(last_result=res),
                                                settings_from_parameters({}))
     assert values["parallel_pairs_undecided"] == 1
     assert level == Level.WARN and "could not settle" in message
+    assert parallel_warning(res) is not None
+
+
+def test_the_command_line_warns_of_an_undecided_pair(tmp_path: Path, capsys) -> None:
+    case = _tail_hung_by_a_step_sent_two_ways()
+    src = tmp_path / "tail.g2o"
+    src.write_text("".join(
+        f"EDGE_SE3:QUAT {a} {b} 0 0 0 " + " ".join(repr(float(v)) for v in matrix_to_quat(Rk))
+        + "\n" for a, b, Rk in zip(case.i.tolist(), case.j.tolist(), case.R, strict=True)))
+    assert main(["solve", str(src), "-o", str(tmp_path / "out.g2o")]) == 0
+    assert "1 node pair(s) measured with rotations that disagree" in capsys.readouterr().err

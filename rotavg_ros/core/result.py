@@ -106,6 +106,16 @@ class SolveResult:
     its ends): their edge stays the merged one, a median between them."""
 
 
+def parallel_warning(result: SolveResult) -> str | None:
+    """One line when node pairs measured with rotations that disagree could not be settled
+    (:attr:`SolveResult.num_parallel_undecided`; else None)."""
+    if not result.num_parallel_undecided:
+        return None
+    return (f"{result.num_parallel_undecided} node pair(s) measured with rotations that "
+            "disagree could not be settled against the solution: their merged edge, a "
+            "median between the measurements, stands")
+
+
 def components_warning(result: SolveResult) -> str | None:
     """One line when the solution has several connected components (else None): how many,
     their sizes, and that each is only defined up to its own gauge."""
