@@ -71,6 +71,26 @@ def test_true_twins_are_merged_as_before() -> None:
     np.testing.assert_array_equal(settled.rotations, merged.rotations)
 
 
+def test_wrong_twins_of_odometry_steps_are_withheld_then_set_aside() -> None:
+    # Six trusted odometry steps of a clean 5^3 lattice also sent 60 deg off. Merged, each
+    # step bends the solution onto itself (28 deg median), so against the first solve
+    # neither of a pair's measurements agrees: the pairs are withheld, the graph solved
+    # without them, and there the right one of each agrees and the wrong one is set aside.
+    case = rc.lattice_case("test/lattice/step", 5, noise_deg=1.0, seed=1)
+    rng = np.random.default_rng(1)
+    steps = rng.choice(np.flatnonzero(np.abs(case.i - case.j) == 1), 6, replace=False)
+    wrong = case.R[steps] @ rc.rotation_about_axis(rc.random_axes(6, rng),
+                                                   np.radians(np.full(6, 60.0)))
+    i, j = np.r_[case.i, case.i[steps]], np.r_[case.j, case.j[steps]]
+    R = np.concatenate([case.R, wrong])
+    _, alone = _solve(case, case.i, case.j, case.R)
+    _, merged_median = _solve(case, i, j, R, settle=False)
+    settled, settled_median = _solve(case, i, j, R)
+    assert merged_median > 10.0 * alone
+    assert settled.num_parallel_set_aside == 6 and settled.num_parallel_undecided == 0
+    assert abs(settled_median - alone) <= 0.01 * alone
+
+
 def _tail_hung_by_a_step_sent_two_ways() -> rc.RegimeCase:
     """A tail of 20 keyframes that hangs by one odometry step, sent twice, 60 deg apart:
     every rotation of the step fits it exactly, so no solution can tell the two apart."""

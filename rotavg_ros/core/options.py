@@ -347,8 +347,10 @@ class VerifyOptions:
     graph's ``merge`` policy averages them into one edge between them): after the solve,
     set aside those that disagree with the solution where others of the pair agree, and
     solve again (:mod:`~rotavg_ros.core.robust.parallel_measurements`; a front end that
-    sends two hypotheses for one pair). No cost where no pair's measurements disagree.
-    Off: the merged edge stands, as until 2026-12-08."""
+    sends two hypotheses for one pair); pairs it cannot settle are withheld from one more
+    solve and judged against it. Nothing runs where no pair is measured twice; one more
+    solve where measurements are set aside, two where a pair is undecided. Off: the merged
+    edge stands, as until 2026-12-08."""
     halfway_where_tied: bool = field(default=True, metadata=_flat("halfway_where_tied"))
     """Where ``l1_by_cross_validation``'s verdict is the alternative (L1 or Huber) but all
     ten folds ran and their t statistic stays inside Student's two-sided 95% band (a tie,

@@ -40,7 +40,7 @@ from rotavg_ros.core.robust.l1_choice import (
 )
 from rotavg_ros.core.robust.noise import NOISE_AXES, noise_axes, redundancy
 from rotavg_ros.core.robust.odometry_bias import estimate_odometry_bias, remove_odometry_bias
-from rotavg_ros.core.robust.parallel_measurements import settle_parallel
+from rotavg_ros.core.robust.parallel_measurements import ParallelVerdict, settle_parallel
 from rotavg_ros.core.robust.verify import (
     GNC_SIGMAS,
     RobustSolve,
@@ -213,22 +213,41 @@ class RotationAverager:
                 and graph.num_measurements > edges.num_edges):
             return result
         # Pairs measured more than once whose measurements disagree, judged against the
-        # solution: where some agree with it and others not, the others are set aside and
-        # the graph is solved once more (docs/method.md: one round).
+        # solution (docs/method.md, "Parallel measurements that disagree").
         mi, mj, mR, mw = graph.measurement_arrays()
-        verdict = settle_parallel(graph.num_nodes, mi, mj, mR, mw, edges.i, edges.j, edges.R,
-                                  edges.weight, result.edge_inlier, result.rotations,
-                                  math.radians(result.noise_sigma_deg))
-        if verdict is None:
-            return result
-        if verdict.set_aside:
-            self._say(f"parallel measurements: {verdict.set_aside} set aside (their pair's "
-                      "other measurements agree with the solution); solving again")
-            keep = verdict.keep
+
+        def judged(keep: BoolArray, edges: EdgeArrays, result: SolveResult,
+                   ) -> ParallelVerdict | None:
+            return settle_parallel(graph.num_nodes, mi[keep], mj[keep], mR[keep], mw[keep],
+                                   edges.i, edges.j, edges.R, edges.weight,
+                                   result.edge_inlier, result.rotations,
+                                   math.radians(result.noise_sigma_deg))
+
+        def solved(keep: BoolArray) -> tuple[EdgeArrays, SolveResult]:
             edges = consolidate(mi[keep], mj[keep], mR[keep], mw[keep], RepeatPolicy.MERGE)
-            result = self._solve_edges(graph, edges, anchor_idx, init, initial_depth)
-        return replace(result, num_parallel_set_aside=verdict.set_aside,
-                       num_parallel_undecided=verdict.undecided)
+            return edges, self._solve_edges(graph, edges, anchor_idx, init, initial_depth)
+
+        first = judged(np.ones(mi.size, bool), edges, result)
+        if first is None:
+            return result
+        keep, undecided = first.keep, first.undecided
+        if first.withhold.any():
+            # Undecided pairs: their merged edge may have bent the solution, or pushed the
+            # closures across it out. Solved without them, then judged again.
+            held = first.withhold
+            edges, result = solved(keep & ~held)
+            again = judged(held, edges, result)
+            if again is not None:
+                keep = keep.copy()
+                keep[held] = again.keep
+                undecided += again.undecided - int(np.unique(
+                    mi[held] * graph.num_nodes + mj[held]).size)
+        if not keep.all() or first.withhold.any():
+            self._say(f"parallel measurements: {int((~keep).sum())} set aside (their pair's "
+                      "other measurements agree with the solution); solving again")
+            edges, result = solved(keep)
+        return replace(result, num_parallel_set_aside=int((~keep).sum()),
+                       num_parallel_undecided=undecided)
 
     def _solve_edges(
         self, graph: ViewGraph, edges: EdgeArrays, anchor_idx: int,

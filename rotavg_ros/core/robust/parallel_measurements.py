@@ -17,8 +17,11 @@ pair's measurements agree (within :data:`AGREE_SPREADS`) and others do not, the 
 set aside and the pair's edge is merged again from those that agree; the caller solves again.
 Only pairs whose measurements disagree with each other (beyond :data:`AGREE_SPREADS` of
 their own noise combined) are judged. One all of whose measurements agree is left merged;
-one none of whose measurements agrees, or whose ends only its own edge joins (a bridge:
-every measurement fits it exactly), is left merged and counted as undecided.
+one none of whose measurements agrees, or whose ends only its own edge joins in the fit
+(every measurement fits it exactly), is undecided: the caller withholds those
+(:attr:`ParallelVerdict.withhold`), solves without them and judges them again, where their
+own edge no longer bends the solution (a pair absent from the solved edges is predicted
+by the fit alone). What stays undecided is left merged and counted.
 
 Conventions: world-to-node rotations ``R_i``, ``R_ij ~= R_i R_j^T``, measurements oriented
 ``i < j`` (as :meth:`~rotavg_ros.core.view_graph.ViewGraph.measurement_arrays` gives them).
@@ -59,6 +62,11 @@ class ParallelVerdict:
     none of them agrees with it, or only the pair's own edge joins its ends. (Where all of
     them agree with it, its prediction of the pair is looser than their disagreement: the
     merged edge stands, not counted.)"""
+    withhold: BoolArray
+    """Per raw measurement: of an undecided pair. Its merged edge may have bent the solution
+    towards itself, or made itself a bridge of the fit by pushing the loop closures across
+    it out: the caller may solve without these and judge them again (a bridge of the whole
+    graph then has no prediction and stays undecided)."""
 
 
 def settle_parallel(
@@ -87,19 +95,24 @@ def settle_parallel(
     disagree = _disagree_within(mR[k], at, multi.size, own_spread[k])
     keep = np.ones(mi.size, bool)
     if not disagree.any():
-        return ParallelVerdict(keep, 0, 0)
+        return ParallelVerdict(keep, 0, 0, np.zeros(mi.size, bool))
     judged = multi[disagree]
     k = np.flatnonzero(np.isin(group, judged))
     at = np.searchsorted(judged, group[k])  # each judged measurement's row in ``judged``
-    edge_of_pair = np.searchsorted(edge_i * num_nodes + edge_j, pairs[judged])
+    pi, pj = pairs[judged] // num_nodes, pairs[judged] % num_nodes
+    # Each judged pair's edge among those solved (absent: withheld from the solve).
+    edge_key = edge_i * num_nodes + edge_j
+    pos = np.minimum(np.searchsorted(edge_key, pairs[judged]), max(edge_key.size - 1, 0))
+    present = (edge_key.size > 0) & (edge_key[pos] == pairs[judged])
     w_fit = np.where(kept, edge_w / scale, 0.0)
-    q, leverage, predicted = _prediction_variance(num_nodes, edge_i, edge_j, w_fit,
-                                                  edge_of_pair)
+    own = np.where(present, w_fit[pos], 0.0)
+    q, leverage, predicted = _prediction_variance(num_nodes, edge_i, edge_j, w_fit, pi, pj,
+                                                  own)
     # The pair's prediction from the other edges: where its merged edge is in the fit, the
     # solution leans towards it; without it, the fitted residual grows by 1 / (1 - h)
     # (the deletion formula of least squares, in the merged edge's tangent space).
-    merged = edge_R[edge_of_pair]
-    fitted = rotations[edge_i[edge_of_pair]] @ np.swapaxes(rotations[edge_j[edge_of_pair]], 1, 2)
+    fitted = rotations[pi] @ np.swapaxes(rotations[pj], 1, 2)
+    merged = np.where(present[:, None, None], edge_R[pos], fitted)
     lean = log_map(fitted @ np.swapaxes(merged, 1, 2))
     alone = exp_map(lean / np.maximum(1.0 - leverage, 1e-12)[:, None]) @ merged
     r = rotation_angle(mR[k] @ np.swapaxes(alone[at], 1, 2))
@@ -109,24 +122,28 @@ def settle_parallel(
     settled = (n_agree > 0) & (n_agree < counts[judged])
     keep[k] = ~(settled[at] & ~agree)
     undecided = ~settled & ((n_agree == 0) | ~predicted)
-    return ParallelVerdict(keep, int((~keep).sum()), int(undecided.sum()))
+    withhold = np.zeros(mi.size, bool)
+    withhold[k] = undecided[at]
+    return ParallelVerdict(keep, int((~keep).sum()), int(undecided.sum()), withhold)
 
 
 def _prediction_variance(n: int, i: IntArray, j: IntArray, w_fit: FloatArray,
-                         edges: IntArray) -> tuple[FloatArray, FloatArray, BoolArray]:
-    """Per edge in ``edges``: ``q``, the variance of its pair's prediction from the other
-    edges of the fit (weights ``w_fit``; 0: not in the fit), in units of a unit-weight
-    edge's noise variance; the edge's own leverage ``h = w q_with`` in the fit (0 where it
-    is not in it); and whether there is a prediction (False: a bridge of the fit, or ends
-    in different pieces of it). Each piece of the fit is factored on its own."""
-    q = np.zeros(edges.size)
-    leverage = np.zeros(edges.size)
-    predicted = np.zeros(edges.size, bool)
+                         pi: IntArray, pj: IntArray, own: FloatArray,
+                         ) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """Per pair ``(pi, pj)``: ``q``, the variance of its prediction from the edges of the
+    fit other than its own (weights ``w_fit``; 0: not in the fit; ``own``: the pair's own
+    edge's weight in it, 0 where it has none there), in units of a unit-weight edge's noise
+    variance; its own edge's leverage ``h = own q_with``; and whether there is a prediction
+    (False: a bridge of the fit, or ends in different pieces of it). Each piece of the fit
+    is factored on its own."""
+    q = np.zeros(pi.size)
+    leverage = np.zeros(pi.size)
+    predicted = np.zeros(pi.size, bool)
     fit = w_fit > 0
     pieces = connected_components(
         coo_matrix((np.ones(int(fit.sum())), (i[fit], j[fit])), shape=(n, n)),
         directed=False)[1]
-    a, b = pieces[i[edges]], pieces[j[edges]]
+    a, b = pieces[pi], pieces[pj]
     for piece in np.unique(a[a == b]):
         rows = np.flatnonzero((a == piece) & (b == piece))
         nodes = np.flatnonzero(pieces == piece)
@@ -134,15 +151,13 @@ def _prediction_variance(n: int, i: IntArray, j: IntArray, w_fit: FloatArray,
         local[nodes] = np.arange(nodes.size)
         inside = fit & (pieces[i] == piece)
         li, lj = local[i[inside]], local[j[inside]]
-        # the rows' own edges, appended with weight 0 where they are not in the fit
-        ei, ej = local[i[edges[rows]]], local[j[edges[rows]]]
-        own = w_fit[edges[rows]]
+        # the pairs, appended with weight 0: their resistances in the fit as it is
         q_with = effective_resistances(
-            nodes.size, np.r_[li, ei], np.r_[lj, ej], np.r_[w_fit[inside], np.zeros(rows.size)],
-            np.arange(li.size, li.size + rows.size))
-        h = own * q_with  # leverage of the pair's own edge where it is in the fit
+            nodes.size, np.r_[li, local[pi[rows]]], np.r_[lj, local[pj[rows]]],
+            np.r_[w_fit[inside], np.zeros(rows.size)], np.arange(li.size, li.size + rows.size))
+        h = own[rows] * q_with
         bridge = h > BRIDGE_LEVERAGE
-        q[rows] = np.where(own > 0, q_with / np.maximum(1.0 - h, 1e-12), q_with)
+        q[rows] = q_with / np.maximum(1.0 - h, 1e-12)
         leverage[rows] = np.where(bridge, 0.0, h)
         predicted[rows] = ~bridge
     return q, leverage, predicted
