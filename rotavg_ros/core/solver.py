@@ -212,8 +212,15 @@ class RotationAverager:
                 and graph.repeat_policy is RepeatPolicy.MERGE
                 and graph.num_measurements > edges.num_edges):
             return result
-        # Pairs measured more than once whose measurements disagree, judged against the
-        # solution (docs/method.md, "Parallel measurements that disagree").
+        return self._settle_parallel(graph, edges, result, anchor_idx, init, initial_depth)
+
+    def _settle_parallel(
+        self, graph: ViewGraph, edges: EdgeArrays, result: SolveResult, anchor_idx: int,
+        init: FloatArray | None, initial_depth: int | None,
+    ) -> SolveResult:
+        """:meth:`solve`'s answer ``result`` (of the merged ``edges``) with the graph's pairs
+        measured more than once whose measurements disagree settled against it, and solved
+        again where that changes the edges (:mod:`.robust.parallel_measurements`)."""
         mi, mj, mR, mw = graph.measurement_arrays()
 
         def judged(keep: BoolArray, edges: EdgeArrays, result: SolveResult,
