@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import peers
 from benchmarks import regime_cases as rc
 from benchmarks.datasets import find_gtsam_data, load_city10000, shared_dir_or_say
 from benchmarks.regimes import our_options
@@ -58,6 +59,18 @@ def solve(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, gt: FloatArra
             f"{res.num_parallel_set_aside} | {res.num_parallel_undecided}")
 
 
+def gnc_tls(num_nodes: int, i: IntArray, j: IntArray, R: FloatArray, gt: FloatArray,
+            sigma_deg: float) -> str:
+    """GTSAM GNC-TLS with each measurement its own factor (the peer; ``bench`` extra)."""
+    try:
+        rot, wall = peers.run_gtsam_gnc_tls(num_nodes, i, j, R, None,
+                                            sigma=float(np.radians(sigma_deg)), parallel=True)
+    except ImportError:
+        return "not installed | | | "
+    s = evaluate(dict(enumerate(rot)), dict(enumerate(gt)))
+    return f"{s.mean_deg:.3f} / {s.median_deg:.3f} | {wall:.2f} | – | –"
+
+
 def twin_rows(shared: Path) -> list[str]:
     rows = []
     for seed, model, name, share in TWIN_CASES:
@@ -79,6 +92,8 @@ def twin_rows(shared: Path) -> list[str]:
             for settle in (False, True):
                 rows.append(f"| {label} + {pick.size} {kind} twins | {'on' if settle else 'off'}"
                             f" | {solve(case.num_nodes, i, j, R, gt, settle)} |")
+            rows.append(f"| {label} + {pick.size} {kind} twins | GTSAM GNC-TLS | "
+                        f"{gnc_tls(case.num_nodes, i, j, R, gt, case.sigma_deg)} |")
     return rows
 
 
@@ -94,9 +109,11 @@ def city_rows() -> list[str]:
     R = np.concatenate([rc.rotation_about_axis(z, h.measured),
                         rc.rotation_about_axis(z, h.alternative[two])])
     i, j = np.r_[h.i, h.i[two]], np.r_[h.j, h.j[two]]
-    return [f"| City10000, both hypotheses of {int(two.sum())} steps | "
-            f"{'on' if settle else 'off'} | {solve(h.truth.size, i, j, R, gt, settle)} |"
-            for settle in (False, True)]
+    label = f"City10000, both hypotheses of {int(two.sum())} steps"
+    sigma = rc.city10000_case("city", data).sigma_deg  # the true edges' spread
+    return [f"| {label} | {'on' if settle else 'off'} | "
+            f"{solve(h.truth.size, i, j, R, gt, settle)} |" for settle in (False, True)] + [
+        f"| {label} | GTSAM GNC-TLS | {gnc_tls(h.truth.size, i, j, R, gt, sigma)} |"]
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -83,8 +83,11 @@ def _prepare(
     j: ArrayLike,
     R_ij: ArrayLike,
     weight: ArrayLike | None,
+    parallel: bool = False,
 ) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
-    """Validate the problem; returns int64 ``i, j``, float ``R`` (E,3,3) and weights (E,)."""
+    """Validate the problem; returns int64 ``i, j``, float ``R`` (E,3,3) and weights (E,).
+    ``parallel``: node pairs may be measured more than once (one factor each; GTSAM's
+    factor graphs take them as they come)."""
     n = int(num_nodes)
     ii = np.asarray(i, dtype=np.int64).reshape(-1)
     jj = np.asarray(j, dtype=np.int64).reshape(-1)
@@ -109,7 +112,7 @@ def _prepare(
         if w.shape[0] != E or not np.all(np.isfinite(w)) or np.any(w <= 0):
             raise ValueError("weight must be E finite positive numbers")
     lo, hi = np.minimum(ii, jj), np.maximum(ii, jj)
-    if np.unique(lo * n + hi).shape[0] != E:
+    if not parallel and np.unique(lo * n + hi).shape[0] != E:
         raise ValueError("parallel edges: consolidate to one edge per node pair first")
     if n > 1:
         adj = coo_matrix((np.ones(E), (ii, jj)), shape=(n, n))
@@ -298,6 +301,7 @@ def run_gtsam_chordal(
     weight: ArrayLike | None = None,
     *,
     method: str = "auto",
+    parallel: bool = False,
 ) -> tuple[FloatArray, float]:
     """GTSAM's chordal (linear, then projected) rotation initialisation.
 
@@ -311,7 +315,7 @@ def run_gtsam_chordal(
     """
     import gtsam
 
-    ii, jj, R, w = _prepare(num_nodes, i, j, R_ij, weight)
+    ii, jj, R, w = _prepare(num_nodes, i, j, R_ij, weight, parallel)
     n = int(num_nodes)
     sig = 1.0 / np.sqrt(w)
     if method == "auto":
@@ -352,6 +356,7 @@ def run_gtsam_gnc_tls(
     known_inliers: ArrayLike | None = None,
     inlier_probability: float = 0.99,
     max_iterations: int | None = None,
+    parallel: bool = False,
 ) -> tuple[FloatArray, float]:
     """GTSAM graduated non-convexity with truncated least squares (``GncLMOptimizer``).
 
@@ -368,14 +373,15 @@ def run_gtsam_gnc_tls(
     measurements; deterministic; not timed, like Shonan's start).
 
     ``known_inliers``: indices into the edge list (e.g. odometry edges) handed to
-    ``GncLMParams.setKnownInliers`` (they keep weight 1 throughout).
+    ``GncLMParams.setKnownInliers`` (they keep weight 1 throughout). ``parallel``: node
+    pairs may be measured more than once, each measurement its own factor.
     """
     import gtsam
 
-    ii, jj, R, w = _prepare(num_nodes, i, j, R_ij, weight)
+    ii, jj, R, w = _prepare(num_nodes, i, j, R_ij, weight, parallel)
     n = int(num_nodes)
     sig = np.full(w.shape, float(sigma)) if weight is None else 1.0 / np.sqrt(w)
-    R0, _ = run_gtsam_chordal(n, ii, jj, R, w)
+    R0, _ = run_gtsam_chordal(n, ii, jj, R, w, parallel=parallel)
 
     graph = gtsam.NonlinearFactorGraph()
     for a, b, M, s in zip(ii.tolist(), jj.tolist(), R, sig.tolist(), strict=True):
