@@ -130,3 +130,17 @@ def test_the_command_line_warns_of_an_undecided_pair(tmp_path: Path, capsys) -> 
         + "\n" for a, b, Rk in zip(case.i.tolist(), case.j.tolist(), case.R, strict=True)))
     assert main(["solve", str(src), "-o", str(tmp_path / "out.g2o")]) == 0
     assert "1 node pair(s) measured with rotations that disagree" in capsys.readouterr().err
+
+
+def test_the_check_is_a_node_parameter_and_a_flag(tmp_path: Path, capsys) -> None:
+    assert settings_from_parameters({}).solver.verify.settle_parallel
+    off = settings_from_parameters({"settle_parallel": False}).solver
+    assert not off.verify.settle_parallel
+    case = _tail_hung_by_a_step_sent_two_ways()
+    src = tmp_path / "tail.g2o"
+    src.write_text("".join(
+        f"EDGE_SE3:QUAT {a} {b} 0 0 0 " + " ".join(repr(float(v)) for v in matrix_to_quat(Rk))
+        + "\n" for a, b, Rk in zip(case.i.tolist(), case.j.tolist(), case.R, strict=True)))
+    assert main(["solve", str(src), "-o", str(tmp_path / "out.g2o"),
+                 "--no-settle-parallel"]) == 0
+    assert "measured with rotations that disagree" not in capsys.readouterr().err

@@ -144,6 +144,14 @@ PARAMETER_TABLE: tuple[ParameterSpec, ...] = (
         "solve (diagnostic odometry_bias_deg_per_step). false: the odometry stays as "
         "measured."),
     ParameterSpec(
+        "settle_parallel", _SOLVER.verify.settle_parallel,
+        "Where a frame pair is measured more than once with rotations that disagree (two "
+        "hypotheses; repeat_policy merge averages them into one edge between them): after "
+        "the solve, the measurements the solution disagrees with are set aside where others "
+        "of the pair agree, and the graph is solved again (diagnostics "
+        "parallel_measurements_set_aside, parallel_pairs_undecided). false: the merged edge "
+        "stands."),
+    ParameterSpec(
         "mode", _SOLVER.mode,
         "Solver variant: dense (the paper's DMF), sparse (chordal warm start + Huber + "
         "L-BFGS, for chain-like SLAM graphs) or auto (by mean degree).",
@@ -282,6 +290,7 @@ def solver_options_from_parameters(p: Mapping[str, Any]) -> SolverOptions:
         odometry=str(p["odometry"]),
         class_noise=bool(p["class_noise"]),
         odometry_bias=bool(p["odometry_bias"]),
+        settle_parallel=bool(p["settle_parallel"]),
         depths=tuple(int(d) for d in p["depths"]),
         iterations=int(p["iterations"]),
         sigma=float(p["sigma"]),

@@ -107,6 +107,7 @@ def config_from_args(args: argparse.Namespace) -> ReplayConfig:
         "odometry": args.odometry,
         "class_noise": not args.no_class_noise,
         "odometry_bias": not args.no_odometry_bias,
+        "settle_parallel": not args.no_settle_parallel,
         "warm_start": not args.no_warm_start,
         "depths": list(options.dense.depths),
     })

@@ -34,6 +34,11 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    "noise scale for the odometry and one for the loop closures and, where "
                    "they differ beyond doubt, solves again with the odometry weighted by "
                    "their ratio")
+    g.add_argument("--no-settle-parallel", action="store_true",
+                   help="keep a node pair's disagreeing measurements merged: by default, "
+                   "where a pair is measured more than once with rotations that disagree, "
+                   "those the solution disagrees with are set aside where others of the "
+                   "pair agree, and the graph is solved again")
     g.add_argument("--no-odometry-bias", action="store_true",
                    help="keep the odometry as measured: by default, on an odometry chain "
                    "with sparse loop closures and at least 8 on one piece of it, the default "
@@ -85,6 +90,7 @@ def options_from_args(args: argparse.Namespace) -> SolverOptions:
         mode=args.mode, odometry=getattr(args, "odometry", "auto"),
         class_noise=not getattr(args, "no_class_noise", False),
         odometry_bias=not getattr(args, "no_odometry_bias", False), depths=depths,
+        settle_parallel=not getattr(args, "no_settle_parallel", False),
         iterations=args.iterations, tolerance=args.tolerance,
         dtype=args.dtype, lr=args.lr, sigma=args.sigma,
         seed=args.seed, device=args.device,
