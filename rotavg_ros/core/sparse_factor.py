@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from scipy.sparse.linalg import SuperLU, splu
 
 SUPERNODE_RELAX = 1
@@ -48,6 +49,27 @@ def factor_spd(A: Any, ordered: bool = False, supernodes: bool = False) -> Super
     settings = {} if supernodes else {"relax": SUPERNODE_RELAX, "panel_size": PANEL_SIZE}
     return splu(A, permc_spec="NATURAL" if ordered else "MMD_AT_PLUS_A",
                 diag_pivot_thresh=0.0, options={"SymmetricMode": True}, **settings)
+
+
+SOLVE_COLUMNS = 32
+"""Right-hand sides :func:`solve_by_blocks` hands SuperLU at a time. Its triangular solves
+sweep the whole factor once per call, with every column's right-hand side in the working
+set: 96 columns of a 10,000-node Laplacian (7.7 MB, the probes of
+:func:`~rotavg_ros.core.robust.gauss_newton.prediction_variance`) cost 0.32 ms a column, 32
+at a time 0.20-0.23 (City10000, this machine's 2 MB L2 per core), 11% less on torus3D's
+5,000 nodes, the same on smaller graphs (scratch, 2026-12-08). The same numbers: each
+column's solution does not depend on the block it is solved in (measured bit for bit, 96
+columns against blocks of 32, on four pose graphs)."""
+
+
+def solve_by_blocks(lu: SuperLU, b: Any) -> Any:
+    """``lu.solve(b)``, the columns of a wide ``b`` :data:`SOLVE_COLUMNS` at a time."""
+    if b.ndim < 2 or b.shape[1] <= SOLVE_COLUMNS:
+        return lu.solve(b)
+    x = np.empty(b.shape)
+    for lo in range(0, b.shape[1], SOLVE_COLUMNS):
+        x[:, lo:lo + SOLVE_COLUMNS] = lu.solve(np.ascontiguousarray(b[:, lo:lo + SOLVE_COLUMNS]))
+    return x
 
 
 def factor_fills_heavily(lu: SuperLU, size: int) -> bool:

@@ -31,7 +31,7 @@ from scipy.linalg import cho_factor, cho_solve, lapack
 from scipy.sparse import coo_matrix, csc_matrix, csr_matrix
 
 from rotavg_ros.core import so3_soa as soa
-from rotavg_ros.core.sparse_factor import factor_fills_heavily, factor_spd
+from rotavg_ros.core.sparse_factor import factor_fills_heavily, factor_spd, solve_by_blocks
 from rotavg_ros.core.types import BoolArray, FloatArray, IntArray
 
 
@@ -413,9 +413,9 @@ class Factor:
             self._factor_sparse(self._matrix)  # did not converge: factor after all
         assert self._lu is not None
         if self._perm is None:
-            return np.asarray(self._lu.solve(b))
+            return np.asarray(solve_by_blocks(self._lu, b))
         x = np.empty_like(b)
-        x[self._perm] = self._lu.solve(np.ascontiguousarray(b[self._perm]))
+        x[self._perm] = solve_by_blocks(self._lu, np.ascontiguousarray(b[self._perm]))
         return x
 
 
