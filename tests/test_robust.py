@@ -410,10 +410,10 @@ def test_sparse_factor_solves_spd_systems_in_either_order() -> None:
 
 
 def test_wide_solves_go_in_blocks_with_the_same_numbers() -> None:
-    """:func:`solve_by_blocks` hands SuperLU at most :data:`SOLVE_COLUMNS` columns at a time
-    and returns what one solve of every column gives: bit for bit where the columns split
-    into whole blocks (the probes' 96), to rounding otherwise; vectors and narrow blocks go
-    through unchanged."""
+    """Where the right-hand sides are wide, :func:`solve_by_blocks` hands SuperLU at most
+    :data:`SOLVE_COLUMNS` columns at a time and returns what one solve of every column
+    gives: bit for bit where the columns split into whole blocks (the probes' 96), to
+    rounding otherwise; vectors, few columns and small right-hand sides go in one call."""
     rng = np.random.default_rng(5)
     n = 800
     i = np.concatenate([np.arange(n - 1), rng.integers(0, n, 150)])
@@ -432,14 +432,16 @@ def test_wide_solves_go_in_blocks_with_the_same_numbers() -> None:
     for width in (3 * SOLVE_COLUMNS, 2 * SOLVE_COLUMNS + 7):
         b = rng.normal(size=(L.shape[0], width))
         calls.clear()
-        x = solve_by_blocks(Counting(), b)  # type: ignore[arg-type]
+        x = solve_by_blocks(Counting(), b, wide_bytes=0)  # type: ignore[arg-type]
         assert max(calls) == SOLVE_COLUMNS and sum(calls) == width
         if width % SOLVE_COLUMNS == 0:
             np.testing.assert_array_equal(x, lu.solve(b))
         np.testing.assert_allclose(x, np.linalg.solve(L.toarray(), b), rtol=1e-8, atol=1e-10)
-    for b in (rng.normal(size=L.shape[0]), rng.normal(size=(L.shape[0], 3))):
+    for b, wide in ((rng.normal(size=L.shape[0]), 0), (rng.normal(size=(L.shape[0], 3)), 0),
+                    (rng.normal(size=(L.shape[0], 96)), 96 * 8 * L.shape[0])):
         calls.clear()
-        np.testing.assert_array_equal(solve_by_blocks(Counting(), b), lu.solve(b))  # type: ignore[arg-type]
+        x = solve_by_blocks(Counting(), b, wide_bytes=wide)  # type: ignore[arg-type]
+        np.testing.assert_array_equal(x, lu.solve(b))
         assert len(calls) == 1
 
 

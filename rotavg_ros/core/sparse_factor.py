@@ -52,19 +52,24 @@ def factor_spd(A: Any, ordered: bool = False, supernodes: bool = False) -> Super
 
 
 SOLVE_COLUMNS = 32
-"""Right-hand sides :func:`solve_by_blocks` hands SuperLU at a time. Its triangular solves
-sweep the whole factor once per call, with every column's right-hand side in the working
-set: 96 columns of a 10,000-node Laplacian (7.7 MB, the probes of
-:func:`~rotavg_ros.core.robust.gauss_newton.prediction_variance`) cost 0.32 ms a column, 32
-at a time 0.20-0.23 (City10000, this machine's 2 MB L2 per core), 11% less on torus3D's
-5,000 nodes, the same on smaller graphs (scratch, 2026-12-08). The same numbers: each
-column's solution does not depend on the block it is solved in (measured bit for bit, 96
-columns against blocks of 32, on four pose graphs)."""
+"""Right-hand sides :func:`solve_by_blocks` hands SuperLU at a time, where they are wide
+(:data:`WIDE_BYTES`). SuperLU's triangular solves sweep the whole factor once per call with
+every column's right-hand side in the working set: 96 columns of City10000's Laplacian
+(10,000 nodes, 7.7 MB: the probes of
+:func:`~rotavg_ros.core.robust.gauss_newton.prediction_variance`) took 39.7 ms in one call
+and 24.4 ms 32 at a time; on the regime benchmark's smaller pose graphs and chains (at most
+5,000 nodes, 3.8 MB) blocks were the same or up to 11% slower (``python -m
+benchmarks.bench_sparse_factor``, 2026-12-08, this machine's 2 MB L2 per core). The same
+numbers: each column's solution does not depend on the block it is solved in (measured bit
+for bit, 96 columns against blocks of 32, on seven graphs)."""
+WIDE_BYTES = 4 * 1024 * 1024
+"""Size of the right-hand sides (bytes) above which :func:`solve_by_blocks` splits them."""
 
 
-def solve_by_blocks(lu: SuperLU, b: Any) -> Any:
-    """``lu.solve(b)``, the columns of a wide ``b`` :data:`SOLVE_COLUMNS` at a time."""
-    if b.ndim < 2 or b.shape[1] <= SOLVE_COLUMNS:
+def solve_by_blocks(lu: SuperLU, b: Any, wide_bytes: int = WIDE_BYTES) -> Any:
+    """``lu.solve(b)``; where ``b`` is wide (more than ``wide_bytes`` and
+    :data:`SOLVE_COLUMNS` columns), its columns :data:`SOLVE_COLUMNS` at a time."""
+    if b.ndim < 2 or b.shape[1] <= SOLVE_COLUMNS or b.nbytes <= wide_bytes:
         return lu.solve(b)
     x = np.empty(b.shape)
     for lo in range(0, b.shape[1], SOLVE_COLUMNS):
