@@ -77,6 +77,8 @@ def diagnostic_values(
             "untested_loop_closures": result.num_untested,
             "parallel_measurements_set_aside": result.num_parallel_set_aside,
             "parallel_pairs_undecided": result.num_parallel_undecided,
+            "nodes_contested": result.num_contested_nodes,
+            "nodes_contested_ids": describe_contested(result) or "none",
             "depth": result.depth,
             "residual_median_deg": median,
             "residual_mean_deg": float(np.mean(inlier)) if inlier.size else math.nan,
@@ -101,6 +103,10 @@ def diagnostic_values(
             problems.append(f"{result.num_parallel_undecided} node pair(s) measured with "
                             "rotations that disagree, which the solution could not settle: "
                             "their merged edge stands")
+        if result.num_contested_nodes:
+            level = Level.WARN
+            problems.append(f"{result.num_contested_nodes} node(s) rest on one measurement "
+                            "that others contradict: their rotations could not be checked")
         closures, left_out = loop_closures_left_out(result)
         values["loop_closures_left_out"] = f"{left_out} / {closures}"
         if closures >= MIN_CLOSURES_TO_WARN and left_out > settings.left_out_warn_share * closures:
@@ -150,6 +156,15 @@ def loop_closures_left_out(result: SolveResult) -> tuple[int, int]:
     closures = int(np.asarray(result.edge_inlier).size) - odometry
     left_out = int(np.count_nonzero(~np.asarray(result.edge_inlier)))
     return closures, left_out - result.num_distrusted_odometry
+
+
+def describe_contested(result: SolveResult) -> str:
+    """The contested nodes' ids, comma-separated (the first :data:`MAX_DETACHED_LISTED`)."""
+    ids = result.contested_ids()
+    listed = ", ".join(str(k) for k in ids[:MAX_DETACHED_LISTED])
+    if len(ids) > MAX_DETACHED_LISTED:
+        listed += f", ... {len(ids) - MAX_DETACHED_LISTED} more"
+    return listed
 
 
 def describe_detached(result: SolveResult) -> str:

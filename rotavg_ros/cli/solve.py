@@ -15,7 +15,7 @@ import numpy as np
 
 from rotavg_ros.cli.output import warn
 from rotavg_ros.cli.solver_args import options_from_args
-from rotavg_ros.core.result import components_warning, parallel_warning
+from rotavg_ros.core.result import components_warning, contested_warning, parallel_warning
 from rotavg_ros.core.solver import RotationAverager
 from rotavg_ros.errors import InputError
 from rotavg_ros.io.g2o import write_g2o
@@ -41,7 +41,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise InputError(f"{args.output}: {exc.strerror or exc}") from exc
     ncomp = int(result.component.max()) + 1 if result.component.size else 0
-    for line in (components_warning(result), parallel_warning(result)):
+    for line in (components_warning(result), parallel_warning(result),
+                 contested_warning(result)):
         if line is not None:
             warn(line)
     if not args.quiet:

@@ -104,6 +104,38 @@ class SolveResult:
     """Node pairs measured more than once with rotations that disagree with each other which
     the solution could not settle (none agrees with it, or only the pair's own edge joins
     its ends): their edge stays the merged one, a median between them."""
+    node_contested: BoolArray = field(default_factory=lambda: np.zeros(0, bool))
+    """(N,) per node (``node_ids`` order): its rotation rests on one kept edge that edges the
+    solution left out contradict, so nothing checked it (a bridge of the inliers, not kept
+    odometry, that outliers cross; or no inlier joins it to its anchor:
+    :mod:`rotavg_ros.core.robust.contested_nodes`). Empty where not judged."""
+
+    @property
+    def num_contested_nodes(self) -> int:
+        """Nodes of :attr:`node_contested`."""
+        return int(np.count_nonzero(self.node_contested))
+
+    def contested_ids(self) -> list[Hashable]:
+        """The ids of the :attr:`node_contested` nodes, in ``node_ids`` order."""
+        return [self.node_ids[k] for k in np.flatnonzero(self.node_contested)]
+
+
+MAX_CONTESTED_LISTED = 10
+"""Contested node ids :func:`contested_warning` names."""
+
+
+def contested_warning(result: SolveResult) -> str | None:
+    """One line when nodes rest on one measurement that others contradict
+    (:attr:`SolveResult.node_contested`; else None), naming the first few."""
+    count = result.num_contested_nodes
+    if not count:
+        return None
+    ids = result.contested_ids()
+    listed = ", ".join(str(k) for k in ids[:MAX_CONTESTED_LISTED])
+    if count > MAX_CONTESTED_LISTED:
+        listed += f", ... {count - MAX_CONTESTED_LISTED} more"
+    return (f"{count} node(s) rest on one measurement that others contradict, so their "
+            f"rotations could not be checked: {listed}")
 
 
 def parallel_warning(result: SolveResult) -> str | None:

@@ -26,6 +26,7 @@ from rotavg_ros.core.node_sequence import node_sequence
 from rotavg_ros.core.options import SolverOptions
 from rotavg_ros.core.result import SolveResult
 from rotavg_ros.core.robust.class_noise import class_noise
+from rotavg_ros.core.robust.contested_nodes import contested_nodes
 from rotavg_ros.core.robust.gauss_newton import (
     refine_least_squares,
     remembered_cg_failures,
@@ -103,6 +104,9 @@ class ComponentSolution:
     unchecked: int = 0
     """Odometry edges kept against one run of loop closures that nothing else checks
     (:attr:`.robust.verify.VerifyOutcome.unchecked`)."""
+    contested: BoolArray | None = None
+    """Per node: its rotation rests on one kept edge that edges left out contradict
+    (:func:`.robust.contested_nodes.contested_nodes`); None: not judged."""
 
 
 @dataclass
@@ -294,6 +298,8 @@ class RotationAverager:
             pruned_depths=out.pruned_depths,
             odometry_weight=out.odometry_weight,
             odometry_bias_deg_per_step=out.odometry_bias_deg,
+            node_contested=(np.zeros(graph.num_nodes, bool) if out.contested is None
+                            else out.contested),
         )
 
     def solve_component(
@@ -327,9 +333,12 @@ class RotationAverager:
             # of its nodes for every sparse factorization of the solve)
             with (reused_relaxations(), remembered_cg_failures(n),
                   shared_elimination_order(n, i, j)):
-                return self._solve_component(n, i, j, R, w, initial, initial_depth)
+                sol = self._solve_component(n, i, j, R, w, initial, initial_depth)
         finally:
             NOISE_AXES.reset(token)
+        # (kept odometry is trusted: no contest where it alone joins a block)
+        trusted = odometry_edges(n, i, j, self.options.verify.odometry) & sol.kept
+        return replace(sol, contested=contested_nodes(n, i, j, sol.kept, trusted))
 
     def _solve_component(
         self, n: int, i: IntArray, j: IntArray, R: FloatArray, w: FloatArray,
@@ -939,6 +948,9 @@ class ArraySolution:
     unchecked: int = 0
     """Odometry edges kept against one run of loop closures that nothing else checks, over
     all components."""
+    contested: BoolArray | None = None
+    """(N,) whether each node's rotation rests on one kept edge that edges left out
+    contradict (:attr:`ComponentSolution.contested`, every component)."""
 
 
 def average_rotations(
@@ -977,6 +989,7 @@ def average_rotations(
     noise, verification, untested, relocalized, trusted = math.nan, "", 0, 0, 0
     runs_left_out, distrusted, odometry_weight, odometry_bias = 0, 0, 1.0, 0.0
     unchecked = 0
+    contested = np.zeros(num_nodes, bool)
     for label in range(int(labels.max()) + 1 if num_nodes else 0):
         nodes = np.flatnonzero(labels == label)
         comp_anchor.append(anchor if label == 0 and anchor in nodes else int(nodes[0]))
@@ -1010,6 +1023,8 @@ def average_rotations(
         distrusted += sol.distrusted
         unchecked += sol.unchecked
         trusted += sol.trusted
+        if sol.contested is not None:
+            contested[nodes] = sol.contested
         if nodes.size > best_size:
             depth, costs, best_size = sol.depth, sol.cost_by_depth, nodes.size
             iterations, pruned = sol.iterations_by_depth, sol.pruned_depths
@@ -1019,7 +1034,7 @@ def average_rotations(
     return ArraySolution(rotations, labels, comp_anchor, depth, kept, costs,
                          time.perf_counter() - t0, iterations, filter_kept, noise,
                          verification, untested, relocalized, trusted, pruned, runs_left_out,
-                         distrusted, odometry_weight, odometry_bias, unchecked)
+                         distrusted, odometry_weight, odometry_bias, unchecked, contested)
 
 
 def _folds_keep_tree(n: int, i: IntArray, j: IntArray, seed: int, tree: BoolArray) -> bool:

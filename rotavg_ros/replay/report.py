@@ -13,7 +13,12 @@ import numpy as np
 
 from rotavg_ros.app.session import FAILED, SolveAttempt
 from rotavg_ros.core.metrics import ErrorStats
-from rotavg_ros.core.result import SolveResult, components_warning, parallel_warning
+from rotavg_ros.core.result import (
+    SolveResult,
+    components_warning,
+    contested_warning,
+    parallel_warning,
+)
 from rotavg_ros.io.bag_messages import TF_MESSAGE
 from rotavg_ros.replay.config import EXIT_OK
 
@@ -147,7 +152,8 @@ class ReplayReport:
             lines.append(f"  final: {len(r.node_ids)} nodes, {len(r.anchors)} component(s), "
                          f"depth {r.depth}, {r.num_filtered} edges filtered")
             lines += [f"    warning: {line}" for line in (components_warning(r),
-                                                           parallel_warning(r))
+                                                           parallel_warning(r),
+                                                           contested_warning(r))
                       if line is not None]
         if self.final_errors is not None:
             e = self.final_errors
