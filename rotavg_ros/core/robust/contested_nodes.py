@@ -15,8 +15,13 @@ well: every measurement of them was left out.
 
 A bridge the caller trusts (kept odometry) is no contest: the solver trusts odometry over
 a lone loop closure by design, and reports odometry kept against closures on its own
-(:attr:`~rotavg_ros.core.result.SolveResult.num_unchecked_odometry`). The side of a bridge
-away from the root (node 0 of the component: the anchor's side) is the contested block.
+(:attr:`~rotavg_ros.core.result.SolveResult.num_unchecked_odometry`). That holds where an
+odometry step left out crosses it too: the solver chose which of two contradicting steps
+to leave out by their size (a lost track's step is rarely as small as a keyframe's usual
+motion), and counting those choices as contests marked 1,297 nodes of 132 of the 158
+short chains with one wrong step, 171 of them 5 deg or more off (docs/benchmarks.md,
+"Contested nodes"). The side of a bridge away from the root (node 0 of the component: the
+anchor's side) is the contested block.
 
 The answer for these nodes is not wrong for sure, only unchecked: the caller says so
 (the node's ``nodes_contested`` diagnostic, a WARN), so that a user does not take their
