@@ -57,6 +57,16 @@ def test_a_block_held_by_one_edge_that_a_left_out_edge_contradicts() -> None:
     assert _contested([1], [5], [False], trusted_tail=True) == []
 
 
+def test_the_smaller_side_of_a_contested_bridge_is_marked() -> None:
+    # Node 0 hangs by 0-1 from a square 1-2-3-4 with its diagonal; a left-out 0-3 contests
+    # that bridge: node 0 is marked, not the four nodes on the far side from it.
+    i = np.array([0, 1, 2, 3, 4, 1, 0])
+    j = np.array([1, 2, 3, 4, 1, 3, 3])
+    kept = np.r_[np.ones(6, bool), False]
+    marked = contested_nodes(5, i, j, kept, np.zeros(7, bool))
+    assert np.flatnonzero(marked).tolist() == [0]
+
+
 def test_nodes_no_kept_edge_reaches_are_contested() -> None:
     i = np.r_[SQUARE_I, TAIL_I].astype(np.int64)
     j = np.r_[SQUARE_J, TAIL_J].astype(np.int64)

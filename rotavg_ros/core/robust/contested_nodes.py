@@ -20,8 +20,9 @@ odometry step left out crosses it too: the solver chose which of two contradicti
 to leave out by their size (a lost track's step is rarely as small as a keyframe's usual
 motion), and counting those choices as contests marked 1,297 nodes of 132 of the 158
 short chains with one wrong step, 171 of them 5 deg or more off (docs/benchmarks.md,
-"Contested nodes"). The side of a bridge away from the root (node 0 of the component: the
-anchor's side) is the contested block.
+"Contested nodes"). The smaller side of a contested bridge is the contested block (the side
+away from node 0 where the two are equal): the block rests on the bridge relative to the
+bulk of the graph, wherever the anchor lies.
 
 The answer for these nodes is not wrong for sure, only unchecked: the caller says so
 (the node's ``nodes_contested`` diagnostic, a WARN), so that a user does not take their
@@ -39,10 +40,10 @@ from rotavg_ros.core.types import BoolArray, IntArray
 def contested_nodes(num_nodes: int, i: IntArray, j: IntArray, kept: BoolArray,
                     trusted: BoolArray) -> BoolArray:
     """Per node: whether its rotation rests on one kept edge that edges left out contradict
-    (module docstring): it lies on the far side from node 0 of a bridge of the ``kept``
-    edges that is not ``trusted`` and that some edge not kept crosses, or no kept edge
-    joins it to node 0. ``i``, ``j``: the edges' ends (any orientation); a graph of one
-    connected component, node 0 its root."""
+    (module docstring): it lies on the smaller side of a bridge of the ``kept`` edges that
+    is not ``trusted`` and that some edge not kept crosses, or no kept edge joins it to
+    node 0. ``i``, ``j``: the edges' ends (any orientation); a graph of one connected
+    component."""
     contested = np.zeros(num_nodes, bool)
     if num_nodes < 2:
         return contested
@@ -65,11 +66,19 @@ def contested_nodes(num_nodes: int, i: IntArray, j: IntArray, kept: BoolArray,
     lo = bridges.pre[bridges.child[cuts]]
     hi = lo + bridges.size[bridges.child[cuts]]  # the block: preorder numbers lo .. hi - 1
     crossed = (prefix[hi] ^ prefix[lo]) != 0
-    # Each crossed block: +1 where it starts, -1 past its end; a node inside any of them
-    # has a positive running sum.
+    # Each crossed block: +1 where it starts, -1 past its end; where it is the larger side
+    # of its bridge, its complement in node 0's part instead (+1 over the part, -1 over the
+    # block). A node inside any marked side has a positive running sum.
+    whole = int(bridges.component_size[0])
+    larger = 2 * (hi - lo) > whole
+    lo_c, hi_c = lo[crossed], hi[crossed]
+    flip = larger[crossed]
     marks = np.zeros(num_nodes + 1, np.int64)
-    np.add.at(marks, lo[crossed], 1)
-    np.add.at(marks, hi[crossed], -1)
+    np.add.at(marks, lo_c, np.where(flip, -1, 1))
+    np.add.at(marks, hi_c, np.where(flip, 1, -1))
+    flipped = int(np.count_nonzero(flip))
+    marks[0] += flipped
+    marks[whole] -= flipped
     in_block = np.cumsum(marks[:num_nodes]) > 0  # by preorder number
     reached = bridges.pre < bridges.component_size[0]
     contested[reached] |= in_block[bridges.pre[reached]]
