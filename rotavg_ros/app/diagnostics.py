@@ -14,7 +14,7 @@ import numpy as np
 from rotavg_ros.app.accumulator import AccumulatorStats
 from rotavg_ros.app.parameters import Settings
 from rotavg_ros.app.session import SolveBookkeeping
-from rotavg_ros.core.result import SolveResult
+from rotavg_ros.core.result import SolveResult, listed_ids
 from rotavg_ros.core.types import FloatArray
 from rotavg_ros.msg_adapters.outputs import Level
 
@@ -160,11 +160,7 @@ def loop_closures_left_out(result: SolveResult) -> tuple[int, int]:
 
 def describe_contested(result: SolveResult) -> str:
     """The contested nodes' ids, comma-separated (the first :data:`MAX_DETACHED_LISTED`)."""
-    ids = result.contested_ids()
-    listed = ", ".join(str(k) for k in ids[:MAX_DETACHED_LISTED])
-    if len(ids) > MAX_DETACHED_LISTED:
-        listed += f", ... {len(ids) - MAX_DETACHED_LISTED} more"
-    return listed
+    return listed_ids(result.contested_ids(), MAX_DETACHED_LISTED)
 
 
 def describe_detached(result: SolveResult) -> str:

@@ -124,18 +124,23 @@ MAX_CONTESTED_LISTED = 10
 """Contested node ids :func:`contested_warning` names."""
 
 
+def listed_ids(ids: list[Hashable], limit: int) -> str:
+    """``"a, b, c"``: the first ``limit`` of ``ids``, then ``", ... N more"``."""
+    listed = ", ".join(str(k) for k in ids[:limit])
+    if len(ids) > limit:
+        listed += f", ... {len(ids) - limit} more"
+    return listed
+
+
 def contested_warning(result: SolveResult) -> str | None:
     """One line when nodes rest on one measurement that others contradict
     (:attr:`SolveResult.node_contested`; else None), naming the first few."""
     count = result.num_contested_nodes
     if not count:
         return None
-    ids = result.contested_ids()
-    listed = ", ".join(str(k) for k in ids[:MAX_CONTESTED_LISTED])
-    if count > MAX_CONTESTED_LISTED:
-        listed += f", ... {count - MAX_CONTESTED_LISTED} more"
     return (f"{count} node(s) rest on one measurement that others contradict, so their "
-            f"rotations could not be checked: {listed}")
+            f"rotations could not be checked: "
+            f"{listed_ids(result.contested_ids(), MAX_CONTESTED_LISTED)}")
 
 
 def parallel_warning(result: SolveResult) -> str | None:
